@@ -1,0 +1,1 @@
+"""The ``nefii`` console script: one small module per verb."""

@@ -1,0 +1,132 @@
+"""Monte Carlo estimate of the rendering equation at surface points (paper Eq. 1-3).
+
+    L_o(x, wo) ~= 1/N sum_{i=1..N} sum_{s in {cos, ggx, sg}} w_s(wi_s) L_i(x, wi_s) f_r(x, wo, wi_s) (wi_s . n) / p_s(wi_s)
+
+One estimator sample draws one direction from each of the three strategies (cosine,
+GGX visible normals, SG mixture) and fuses them with the power heuristic, as the
+official code does; ``N`` estimator samples make ``3N`` directions per point.
+
+What it does: directions and MIS weights for a batch of points (:func:`sample_mis_directions`),
+then the weighted sum for whatever incoming radiance the caller traced along them
+(:func:`combine`); :func:`estimate_Lo` does both for an ``incoming`` callable.
+What it does not: trace rays or decide what ``L_i`` is (``V E(w)`` or the radiance cache:
+the caller does), and it does not differentiate through the sampling. Directions and
+weights are drawn without gradient, so the gradient of the estimate is the estimate of
+the gradient of the integrand (parameters reach it through ``f_r`` and ``L_i``).
+
+Shapes: ``*bs`` shading points, ``S = 3N`` directions per point.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from .brdf import F0_DIELECTRIC, Material, alpha_from_roughness, brdf_eval
+from .frame import Frame, dot, normalize
+from .mis import power_heuristic_over_pdf
+from .samplers import (SG_HEMISPHERE_EPS, pdf_cosine, pdf_ggx_vndf, pdf_sg_mixture, sample_cosine,
+                       sample_ggx_vndf, sample_sg_mixture, sg_selection_probs)
+from .sg import SGMixture
+
+IncomingRadiance = Callable[[Float[Tensor, "*bs S 3"]], Float[Tensor, "*bs S 3"]]
+"""``wi -> L_i(x, wi)``: radiance arriving at each shading point from each direction."""
+
+MIN_COS_VIEW = 1e-4
+
+
+@dataclass(frozen=True)
+class DirectionSamples:
+    """Incident directions at a batch of shading points and the factor each contributes with."""
+
+    wi: Float[Tensor, "*bs S 3"]
+    """unit world directions towards the light"""
+    weight: Float[Tensor, "*bs S"]
+    """MIS weight over pdf, ``w_s(wi) / p_s(wi)``; 0 for directions below the surface"""
+    wo: Float[Tensor, "*bs 3"]
+    """the view direction actually shaded (moved just above the surface if it was not)"""
+    num_estimator_samples: int
+    """N: the sum over the S directions is divided by N"""
+
+
+@dataclass(frozen=True)
+class RadianceEstimate:
+    """Outgoing radiance ``L_o(x, wo)`` split by BRDF lobe."""
+
+    diffuse: Float[Tensor, "*bs 3"]
+    specular: Float[Tensor, "*bs 3"]
+
+    @property
+    def rgb(self) -> Float[Tensor, "*bs 3"]:
+        return self.diffuse + self.specular
+
+
+def view_above_surface(n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
+    """``wo`` with its normal component raised to at least ``MIN_COS_VIEW``.
+
+    Interpolated shading normals can face slightly away from the camera at silhouettes;
+    the BRDF and the visible-normal sampler both need ``wo . n > 0``.
+    """
+    cos = dot(n, wo).unsqueeze(-1)
+    return normalize(wo + (MIN_COS_VIEW - cos).clamp_min(0.0) * n)
+
+
+def _uniform(shape: tuple[int, ...], like: Tensor, generator: torch.Generator | None) -> Tensor:
+    return torch.rand(shape, generator=generator, device=like.device, dtype=like.dtype)
+
+
+@torch.no_grad()
+def sample_mis_directions(n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"], roughness: Float[Tensor, " *bs"],
+                          sg: SGMixture, num_samples: int, generator: torch.Generator | None = None,
+                          eps: float = SG_HEMISPHERE_EPS) -> DirectionSamples:
+    """``num_samples`` estimator samples per point, each one direction per strategy (S = 3N).
+
+    Directions are ordered ``[cosine x N | GGX x N | SG x N]`` along the S axis.
+    """
+    bs, N = n.shape[:-1], num_samples
+    frame = Frame.from_normal(n)
+    wo = view_above_surface(n, wo)
+    wo_local = frame.to_local(wo).unsqueeze(-2)                   # (*bs, 1, 3)
+    alpha = alpha_from_roughness(roughness).unsqueeze(-1)          # (*bs, 1)
+    probs = sg_selection_probs(sg, n, eps).unsqueeze(-2)           # (*bs, 1, K)
+    frame_s = frame.unsqueeze(-2)
+
+    # ---- one direction from each strategy
+    wi_cos = frame_s.to_world(sample_cosine(_uniform((*bs, N, 2), n, generator)))
+    wi_ggx = frame_s.to_world(sample_ggx_vndf(wo_local, alpha,
+                                              _uniform((*bs, N, 2), n, generator)))
+    wi_sg = sample_sg_mixture(sg, probs, _uniform((*bs, N, 3), n, generator))
+    wi = normalize(torch.cat([wi_cos, wi_ggx, wi_sg], -2))        # (*bs, 3N, 3)
+
+    # ---- every strategy's density at every direction
+    wi_local = frame_s.to_local(wi)
+    p_all = torch.stack([pdf_cosine(wi_local), pdf_ggx_vndf(wo_local, wi_local, alpha),
+                         pdf_sg_mixture(sg, probs, wi)], -1)      # (*bs, 3N, 3)
+    own = torch.arange(3, device=n.device).repeat_interleave(N)   # strategy of each direction
+    p_own = p_all.gather(-1, own.expand(*bs, 3 * N).unsqueeze(-1)).squeeze(-1)
+
+    # ---- power heuristic; directions under the surface carry nothing
+    weight = power_heuristic_over_pdf(p_own, p_all)
+    weight = torch.where(wi_local[..., 2] > 0, weight, torch.zeros_like(weight))
+    return DirectionSamples(wi=wi, weight=weight, wo=wo, num_estimator_samples=N)
+
+
+def combine(samples: DirectionSamples, material: Material, n: Float[Tensor, "*bs 3"],
+            L_i: Float[Tensor, "*bs S 3"], f0: float | Tensor = F0_DIELECTRIC) -> RadianceEstimate:
+    """The estimator's sum: ``1/N sum_S weight f_r L_i (wi . n)``, per lobe."""
+    m = Material(albedo=material.albedo.unsqueeze(-2), roughness=material.roughness.unsqueeze(-1))
+    n_s = n.unsqueeze(-2)
+    f = brdf_eval(m, n_s, samples.wo.unsqueeze(-2), samples.wi, f0)
+    c = (samples.weight * dot(n_s, samples.wi).clamp_min(0.0) / samples.num_estimator_samples).unsqueeze(-1)
+    return RadianceEstimate(diffuse=(f.diffuse * L_i * c).sum(-2), specular=(f.specular * L_i * c).sum(-2))
+
+
+def estimate_Lo(n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"], material: Material, sg: SGMixture,
+                incoming: IncomingRadiance, num_samples: int, generator: torch.Generator | None = None,
+                f0: float | Tensor = F0_DIELECTRIC) -> RadianceEstimate:
+    """Eq. 2 by MIS of cosine, GGX-VNDF and SG sampling, for incoming radiance ``incoming(wi)``."""
+    samples = sample_mis_directions(n, wo, material.roughness.detach(), sg, num_samples, generator)
+    return combine(samples, material, n, incoming(samples.wi), f0)

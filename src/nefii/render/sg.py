@@ -1,0 +1,81 @@
+"""Spherical Gaussians (paper Sec. 3.1, 3.3).
+
+A lobe is ``G(w; xi, lambda, mu) = mu exp(lambda (w . xi - 1))`` with unit axis ``xi``,
+sharpness ``lambda > 0`` and RGB amplitude ``mu``. An environment is a mixture of
+``K`` lobes (K = 128 in the paper). Shapes: ``*bs`` batch of directions, ``K`` lobes.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from .equirect import pixel_directions
+
+
+@dataclass(frozen=True)
+class SGMixture:
+    """A mixture of spherical Gaussians."""
+
+    axis: Float[Tensor, "K 3"]
+    """unit lobe axes xi"""
+    sharpness: Float[Tensor, " K"]
+    """lambda > 0"""
+    amplitude: Float[Tensor, "K 3"]
+    """mu, linear RGB radiance at the lobe centre"""
+
+    def __post_init__(self) -> None:
+        k = self.axis.shape[0]
+        if self.axis.shape != (k, 3) or self.sharpness.shape != (k,) or self.amplitude.shape != (k, 3):
+            raise ValueError(
+                "SGMixture wants axis (K,3), sharpness (K,), amplitude (K,3); got "
+                f"{tuple(self.axis.shape)}, {tuple(self.sharpness.shape)}, {tuple(self.amplitude.shape)}")
+
+    @property
+    def num_lobes(self) -> int:
+        return self.axis.shape[0]
+
+
+def sg_lobes(w: Float[Tensor, "*bs 3"], sg: SGMixture) -> Float[Tensor, "*bs K"]:
+    """Unit-amplitude lobe values ``exp(lambda_k (w . xi_k - 1))`` for every lobe."""
+    cos = w @ sg.axis.T
+    return torch.exp(sg.sharpness * (cos - 1.0))
+
+
+def sg_eval(w: Float[Tensor, "*bs 3"], sg: SGMixture) -> Float[Tensor, "*bs 3"]:
+    """Radiance of the mixture in directions ``w``: ``sum_k mu_k G_k(w)``."""
+    return sg_lobes(w, sg) @ sg.amplitude
+
+
+def sg_integral(sharpness: Float[Tensor, "*K"]) -> Float[Tensor, "*K"]:
+    """Integral of a unit-amplitude lobe over the sphere: ``2 pi / lambda (1 - e^{-2 lambda})``."""
+    return (-2.0 * math.pi) * torch.expm1(-2.0 * sharpness) / sharpness
+
+
+def sg_energy(sg: SGMixture) -> Float[Tensor, " K"]:
+    """Lobe energy ``mu_bar`` of Eq. 6: mean absolute RGB amplitude times the lobe integral.
+
+    This is the radiant energy the lobe sends over the whole sphere (per colour channel,
+    averaged), so a sharp bright sun and a wide dim sky are weighed by what they deliver,
+    not by their peak value.
+    """
+    return sg.amplitude.abs().mean(-1) * sg_integral(sg.sharpness)
+
+
+def sg_to_equirect(sg: SGMixture, height: int, width: int) -> Float[Tensor, "H W 3"]:
+    """Render the mixture to an equirectangular image (pixel centres, docs/design.md mapping)."""
+    d = pixel_directions(height, width, device=sg.axis.device, dtype=sg.axis.dtype)
+    return sg_eval(d, sg)
+
+
+def fibonacci_sphere(n: int, *, device: torch.device | str | None = None,
+                     dtype: torch.dtype = torch.float32) -> Float[Tensor, "n 3"]:
+    """``n`` nearly uniform unit vectors (spherical Fibonacci lattice), e.g. initial lobe axes."""
+    i = torch.arange(n, device=device, dtype=dtype) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = i * (math.pi * (3.0 - math.sqrt(5.0)))
+    r = (1.0 - z * z).clamp_min(0.0).sqrt()
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
