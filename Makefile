@@ -4,7 +4,7 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 TORCH_VERSION ?= 2.13.0
-EXTRAS ?= dev
+EXTRAS ?= dev,synth,colmap
 
 .PHONY: demo test install clean
 
