@@ -1,0 +1,34 @@
+"""The radiance cache ``L(x, n, w_o[, f]) -> RGB`` (paper Eq. 4): outgoing radiance at surface points,
+used as the incoming light of secondary rays that hit the object."""
+from __future__ import annotations
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from .encodings import FourierFeatures, HashGrid
+from .mlp import mlp
+
+
+class RadianceCache(nn.Module):
+    """Non-negative RGB radiance leaving ``x`` (normal ``n``) towards ``w_o``.
+
+    The output is ``softplus``: linear for bright values, never negative.
+    """
+
+    def __init__(self, encoding: HashGrid | FourierFeatures, dir_freqs: int, hidden: int, layers: int,
+                 box: tuple[Tensor, Tensor], feature_dim: int = 0) -> None:
+        super().__init__()
+        self.encoding = encoding
+        self.dir_encoding = FourierFeatures(3, dir_freqs)
+        in_dim = encoding.out_dim + 2 * self.dir_encoding.out_dim + feature_dim
+        self.net = mlp(in_dim, 3, hidden, layers)
+        self.register_buffer("box_lo", torch.as_tensor(box[0], dtype=torch.float32))
+        self.register_buffer("box_size", torch.as_tensor(box[1], dtype=torch.float32) - self.box_lo)
+
+    def forward(self, x: Float[Tensor, "*bs 3"], n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"],
+                features: Float[Tensor, "*bs F"] | None = None) -> Float[Tensor, "*bs 3"]:
+        parts = [self.encoding((x - self.box_lo) / self.box_size), self.dir_encoding(n), self.dir_encoding(wo)]
+        if features is not None:
+            parts.append(features)
+        return nn.functional.softplus(self.net(torch.cat(parts, -1)))

@@ -1,0 +1,86 @@
+"""Input encodings for the fields.
+
+* :class:`FourierFeatures`: the paper's positional encoding (NeRF): ``[x, sin(2^k pi x), cos(2^k pi x)]``.
+* :class:`HashGrid`: a multiresolution hash grid (Mueller et al. 2022) in pure PyTorch, the fast
+  option for the CPU. Positions are expected in ``[0, 1]^3`` (the fields normalise by the scene box).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+
+class FourierFeatures(nn.Module):
+    """``x -> [x, sin(2^k pi x), cos(2^k pi x)]_{k < num_freqs}`` per coordinate."""
+
+    def __init__(self, in_dim: int, num_freqs: int, include_input: bool = True) -> None:
+        super().__init__()
+        self.in_dim, self.num_freqs, self.include_input = in_dim, num_freqs, include_input
+        self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(num_freqs, dtype=torch.float32), persistent=False)
+
+    @property
+    def out_dim(self) -> int:
+        return self.in_dim * (2 * self.num_freqs + int(self.include_input))
+
+    def forward(self, x: Float[Tensor, "*bs D"]) -> Float[Tensor, "*bs E"]:
+        xf = (x.unsqueeze(-1) * self.freqs.to(x.dtype)).flatten(-2)
+        parts = [x] if self.include_input else []
+        return torch.cat(parts + [torch.sin(xf), torch.cos(xf)], -1)
+
+
+_PRIMES = (1, 2654435761, 805459861)
+
+
+class HashGrid(nn.Module):
+    """Multiresolution hash encoding of points in ``[0, 1]^3``.
+
+    Level ``l`` has resolution ``floor(base_res * growth^l)``; levels whose dense grid fits the
+    table are indexed densely, finer ones by the spatial hash of Mueller et al. Features are
+    trilinearly interpolated from the 8 cell corners and concatenated over levels.
+    """
+
+    def __init__(self, num_levels: int = 12, features_per_level: int = 2, log2_table_size: int = 17,
+                 base_resolution: int = 16, max_resolution: int = 512, init_scale: float = 1e-4) -> None:
+        super().__init__()
+        self.num_levels, self.features_per_level = num_levels, features_per_level
+        self.table_size = 2**log2_table_size
+        growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(num_levels - 1, 1))
+        res = [int(math.floor(base_resolution * growth**level)) for level in range(num_levels)]
+        dense = [(r + 1) ** 3 <= self.table_size for r in res]
+        sizes = [(r + 1) ** 3 if d else self.table_size for r, d in zip(res, dense)]
+        offsets = [0]
+        for s in sizes[:-1]:
+            offsets.append(offsets[-1] + s)
+        self.register_buffer("resolution", torch.tensor(res, dtype=torch.float32), persistent=False)
+        self.register_buffer("dense", torch.tensor(dense), persistent=False)
+        self.register_buffer("level_size", torch.tensor(sizes, dtype=torch.long), persistent=False)
+        self.register_buffer("offset", torch.tensor(offsets, dtype=torch.long), persistent=False)
+        self.table = nn.Parameter(torch.empty(sum(sizes), features_per_level).uniform_(-init_scale, init_scale))
+        corners = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=torch.long)
+        self.register_buffer("corners", corners, persistent=False)
+
+    @property
+    def out_dim(self) -> int:
+        return self.num_levels * self.features_per_level
+
+    def forward(self, x: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs E"]:
+        bs = x.shape[:-1]
+        x = x.reshape(-1, 3).clamp(0.0, 1.0)
+        pos = x.unsqueeze(1) * self.resolution.view(1, -1, 1)                  # (N, L, 3)
+        p0 = pos.floor()
+        frac = pos - p0                                                          # (N, L, 3)
+        p0 = p0.long()
+        c = p0.unsqueeze(2) + self.corners.view(1, 1, 8, 3)                      # (N, L, 8, 3)
+        res1 = (self.resolution.long() + 1).view(1, -1, 1)
+        dense_idx = c[..., 0] + res1 * (c[..., 1] + res1 * c[..., 2])
+        hashed = (c[..., 0] * _PRIMES[0]) ^ (c[..., 1] * _PRIMES[1]) ^ (c[..., 2] * _PRIMES[2])
+        idx = torch.where(self.dense.view(1, -1, 1), dense_idx, hashed) % self.level_size.view(1, -1, 1)
+        idx = idx + self.offset.view(1, -1, 1)                                   # (N, L, 8)
+        f = nn.functional.embedding(idx, self.table)                             # (N, L, 8, F)
+        cw = self.corners.view(1, 1, 8, 3).to(x.dtype)
+        w = (cw * frac.unsqueeze(2) + (1 - cw) * (1 - frac.unsqueeze(2))).prod(-1)  # (N, L, 8)
+        out = (f * w.unsqueeze(-1)).sum(2)                                       # (N, L, F)
+        return out.reshape(*bs, self.out_dim)

@@ -1,0 +1,46 @@
+"""The learnable SG environment ``E(w)``: K lobes with learnable axis, sharpness and RGB amplitude."""
+from __future__ import annotations
+
+import math
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from ..render.frame import normalize
+from ..render.sg import SGMixture, fibonacci_sphere
+
+
+class SGEnvironment(nn.Module):
+    """``K`` spherical Gaussians, parameterised so every setting of the parameters is valid.
+
+    axis = normalize(raw axis); sharpness = exp(log sharpness); amplitude = exp(log amplitude).
+    Initial axes are a spherical Fibonacci lattice; initial sharpness is spread log-uniformly
+    over ``[sharpness_min, sharpness_max]`` across the lobes (so some lobes start sharp enough to
+    become a sun, others wide enough to be a sky), initial amplitude ``init_radiance`` spread
+    so that the mixture starts near a constant environment of that radiance.
+    """
+
+    def __init__(self, num_lobes: int = 128, sharpness_min: float = 5.0, sharpness_max: float = 2000.0,
+                 init_radiance: float = 0.5, seed: int = 0) -> None:
+        super().__init__()
+        g = torch.Generator().manual_seed(seed)
+        self.axis_raw = nn.Parameter(fibonacci_sphere(num_lobes))
+        t = torch.randperm(num_lobes, generator=g).float() / max(num_lobes - 1, 1)
+        log_sharp = math.log(sharpness_min) + t * (math.log(sharpness_max) - math.log(sharpness_min))
+        self.log_sharpness = nn.Parameter(log_sharp)
+        # a lobe of sharpness lambda delivers ~2 pi / lambda of a constant unit environment;
+        # share 4 pi init_radiance between lobes
+        sharp = log_sharp.exp()
+        integral = 2 * math.pi / sharp * (1 - torch.exp(-2 * sharp))
+        mu = init_radiance * 4 * math.pi / (num_lobes * integral)
+        self.log_amplitude = nn.Parameter(mu.log().unsqueeze(-1).repeat(1, 3))
+
+    def forward(self) -> SGMixture:
+        return SGMixture(axis=normalize(self.axis_raw), sharpness=self.log_sharpness.exp(),
+                         amplitude=self.log_amplitude.exp())
+
+    def radiance(self, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
+        from ..render.sg import sg_eval
+
+        return sg_eval(w, self())

@@ -1,0 +1,103 @@
+"""The thin model that wires the fields to the rendering math (paper Sec. 3.2, Fig. 2).
+
+``path_trace`` is Eq. 2-4 for a batch of surface points: material from M at x, N estimator
+samples by MIS, one secondary ray per direction, ``V E(w)`` where it escapes and the cache
+``L(x', n', -w)`` where it hits. The secondary hits are returned too: they are the unobserved
+rays of Eq. 8.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from ..fields.cache import RadianceCache
+from ..fields.environment import SGEnvironment
+from ..fields.material import MaterialField
+from ..geometry.base import Geometry, Rays, spawn_rays
+from ..render.brdf import Material
+from ..render.estimator import RadianceEstimate, combine, sample_mis_directions
+from ..render.sg import sg_eval
+
+
+class NeFIIModel(nn.Module):
+    """Material field M, radiance cache L and SG environment E: everything that is learned."""
+
+    def __init__(self, material: MaterialField, cache: RadianceCache, env: SGEnvironment) -> None:
+        super().__init__()
+        self.material, self.cache, self.env = material, cache, env
+
+
+@dataclass(frozen=True)
+class SurfacePoints:
+    """Points on the frozen surface seen along ``wo`` (first hits, or secondary hits reused)."""
+
+    position: Float[Tensor, "B 3"]
+    normal: Float[Tensor, "B 3"]
+    """unit shading normal"""
+    geometric_normal: Float[Tensor, "B 3"]
+    wo: Float[Tensor, "B 3"]
+    """unit direction towards the viewer"""
+
+    def __getitem__(self, idx: Tensor | slice) -> "SurfacePoints":
+        return SurfacePoints(self.position[idx], self.normal[idx], self.geometric_normal[idx], self.wo[idx])
+
+    @staticmethod
+    def cat(items: list["SurfacePoints"]) -> "SurfacePoints":
+        return SurfacePoints(*(torch.cat([getattr(p, f) for p in items]) for f in
+                               ("position", "normal", "geometric_normal", "wo")))
+
+    def __len__(self) -> int:
+        return self.position.shape[0]
+
+
+@dataclass(frozen=True)
+class Transport:
+    """Which light paths the estimator follows (the ablation switches of Sec. 4.3)."""
+
+    indirect: bool = True
+    """secondary rays that hit the object see the radiance cache; off: they see black"""
+    visibility: bool = True
+    """off: every direction sees the environment, as if nothing occluded it (PhySG-style)"""
+
+
+@dataclass(frozen=True)
+class PathTraced:
+    radiance: RadianceEstimate
+    material: Material
+    secondary: SurfacePoints
+    """secondary hits ``(x', n', -w)``: where the cache was queried"""
+
+
+def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_samples: int,
+               generator: torch.Generator | None, transport: Transport = Transport(),
+               roughness_override: float | None = None, ray_offset: float = 1e-4) -> PathTraced:
+    """Eq. 2-4 at ``pts``: the path-traced colour, the material there, and the secondary hits."""
+    material = model.material(pts.position, roughness_override=roughness_override)
+    sg = model.env()
+    samples = sample_mis_directions(pts.normal, pts.wo, material.roughness.detach(), sg, num_samples, generator)
+    wi = samples.wi                                                            # (B, S, 3)
+    B, S = wi.shape[:2]
+    L_i = sg_eval(wi, sg)                                                      # E(w) everywhere
+    empty = SurfacePoints(*(wi.new_zeros(0, 3) for _ in range(4)))
+    if not transport.visibility:
+        return PathTraced(combine(samples, material, pts.normal, L_i), material, empty)
+
+    # ---- secondary rays: only directions that carry weight are traced
+    live = samples.weight > 0
+    b_idx, s_idx = live.nonzero(as_tuple=True)
+    rays = spawn_rays(pts.position[b_idx], pts.geometric_normal[b_idx], wi[b_idx, s_idx],
+                      ray_offset * geometry.scale)
+    hit = geometry.intersect(Rays(rays.origins, rays.directions))
+    hb, hs = b_idx[hit.valid], s_idx[hit.valid]
+    secondary = SurfacePoints(hit.position[hit.valid], hit.normal[hit.valid],
+                              hit.geometric_normal[hit.valid], -wi[hb, hs])
+    # ---- incoming light: V E(w) + (1 - V) L(x', n', -w)
+    if transport.indirect and len(secondary):
+        L_hit = model.cache(secondary.position, secondary.normal, secondary.wo)
+    else:
+        L_hit = L_i.new_zeros(len(secondary), 3)
+    L_i = L_i.index_put((hb, hs), L_hit)
+    return PathTraced(combine(samples, material, pts.normal, L_i), material, secondary)

@@ -1,0 +1,26 @@
+"""Training-time policies the trainer asks, instead of branches spread through the loop."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class RoughnessWarmup:
+    """Roughness is held at ``value`` for the first ``steps`` steps (paper: 50 of 120 epochs), then learned."""
+
+    steps: int
+    value: float = 0.5
+
+    def override(self, step: int) -> float | None:
+        return self.value if step < self.steps else None
+
+
+@dataclass(frozen=True)
+class Alternation:
+    """Every ``every``-th step trains on unobserved rays (Eq. 8) instead of observed ones (Eq. 7)."""
+
+    every: int = 10
+    enabled: bool = True
+
+    def unobserved(self, step: int) -> bool:
+        return self.enabled and self.every > 0 and step % self.every == self.every - 1
