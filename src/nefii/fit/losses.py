@@ -1,0 +1,107 @@
+"""The two losses NeFII alternates between (paper Eq. 7 and Eq. 8)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from ..geometry.base import Geometry
+from .model import NeFIIModel, PathTraced, SurfacePoints, Transport, path_trace
+
+
+def tonemap(x: Tensor, kind: str) -> Tensor:
+    """``none``: linear radiance; ``log1p``: compresses highlights so a sun glint does not dominate."""
+    if kind == "none":
+        return x
+    if kind == "log1p":
+        return torch.log1p(x.clamp_min(0.0))
+    raise ValueError(f"unknown tonemap {kind!r}")
+
+
+@dataclass(frozen=True)
+class ObservedBatch:
+    """Pixels of the training images: object pixels at their cached first hits, and background pixels."""
+
+    points: SurfacePoints
+    rgb: Float[Tensor, "B 3"]
+    """ground-truth linear colour of the object pixels"""
+    bg_dirs: Float[Tensor, "Bb 3"]
+    """view-ray directions of background pixels (they see the environment directly)"""
+    bg_rgb: Float[Tensor, "Bb 3"]
+
+
+@dataclass(frozen=True)
+class LossTerms:
+    total: Tensor
+    render: Tensor
+    """L1 of the path-traced colour (Eq. 7, first term; Eq. 8 for the unobserved step)"""
+    cache: Tensor
+    """L1 of the cache's own colour L(x, n, wo) (Eq. 7, second term)"""
+    background: Tensor
+    """L2 of the environment seen by background pixels (Eq. 7, third term)"""
+
+
+def observed_loss(model: NeFIIModel, geometry: Geometry, batch: ObservedBatch, num_samples: int,
+                  generator: torch.Generator | None, transport: Transport, roughness_override: float | None,
+                  beta1: float = 1.0, beta2: float = 1.0, tone: str = "none") -> tuple[LossTerms, PathTraced]:
+    """Eq. 7: ``|c_pt - c|_1 + beta1 |L(x,n,wo) - c|_1 + beta2 |E(d_bg) - c_bg|_2^2``."""
+    pts = batch.points
+    traced = path_trace(model, geometry, pts, num_samples, generator, transport, roughness_override)
+    gt = tonemap(batch.rgb, tone)
+    l_render = (tonemap(traced.radiance.rgb, tone) - gt).abs().mean()
+    l_cache = (tonemap(model.cache(pts.position, pts.normal, pts.wo), tone) - gt).abs().mean()
+    if len(batch.bg_dirs):
+        l_bg = (tonemap(model.env.radiance(batch.bg_dirs), tone) - tonemap(batch.bg_rgb, tone)).square().mean()
+    else:
+        l_bg = l_render.new_zeros(())
+    total = l_render + beta1 * l_cache + beta2 * l_bg
+    return LossTerms(total, l_render, l_cache, l_bg), traced
+
+
+def unobserved_loss(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_samples: int,
+                    generator: torch.Generator | None, transport: Transport, roughness_override: float | None,
+                    tone: str = "none") -> LossTerms:
+    """Eq. 8: L1 between path tracing at secondary hits and the cache there; neither side detached."""
+    traced = path_trace(model, geometry, pts, num_samples, generator, transport, roughness_override)
+    cached = model.cache(pts.position, pts.normal, pts.wo)
+    l = (tonemap(traced.radiance.rgb, tone) - tonemap(cached, tone)).abs().mean()
+    zero = l.new_zeros(())
+    return LossTerms(l, l, zero, zero)
+
+
+class SecondaryHitBuffer:
+    """The secondary hits of recent observed steps, from which Eq. 8 draws uniformly.
+
+    A ring buffer of detached points on the buffer's device; ``capacity`` bounds memory.
+    """
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._items: SurfacePoints | None = None
+        self._next = 0
+        self._size = 0
+
+    def __len__(self) -> int:
+        return self._size
+
+    def add(self, pts: SurfacePoints) -> None:
+        pts = SurfacePoints(*(t.detach() for t in (pts.position, pts.normal, pts.geometric_normal, pts.wo)))
+        n = min(len(pts), self.capacity)
+        if n == 0:
+            return
+        pts = pts[slice(len(pts) - n, None)]
+        if self._items is None:
+            self._items = SurfacePoints(*(t.new_zeros(self.capacity, 3) for t in
+                                          (pts.position, pts.normal, pts.geometric_normal, pts.wo)))
+        idx = (torch.arange(n, device=pts.position.device) + self._next) % self.capacity
+        for name in ("position", "normal", "geometric_normal", "wo"):
+            getattr(self._items, name)[idx] = getattr(pts, name)
+        self._next = int((self._next + n) % self.capacity)
+        self._size = min(self._size + n, self.capacity)
+
+    def sample(self, n: int, generator: torch.Generator | None) -> SurfacePoints:
+        assert self._items is not None and self._size > 0, "sample() from an empty buffer"
+        idx = torch.randint(self._size, (n,), generator=generator, device=self._items.position.device)
+        return self._items[idx]
