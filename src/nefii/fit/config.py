@@ -1,0 +1,188 @@
+"""Fit configuration: nested dataclasses with a docstring per field, presets in one place.
+
+The resolved config is saved as ``RUN/config.json`` and read back through the same classes
+(:func:`config_from_dict`), so a run can always be reproduced from its folder.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass
+class EncodingConfig:
+    kind: str = "hashgrid"
+    """``hashgrid`` (fast on a CPU) or ``fourier`` (the paper's positional encoding)"""
+    levels: int = 12
+    """hash grid: number of resolution levels"""
+    features_per_level: int = 2
+    """hash grid: features stored per level"""
+    log2_table_size: int = 16
+    """hash grid: entries per level table, as a power of two"""
+    base_resolution: int = 8
+    """hash grid: coarsest grid resolution (over the scene box)"""
+    max_resolution: int = 256
+    """hash grid: finest grid resolution"""
+    fourier_freqs: int = 10
+    """fourier: frequencies per coordinate (paper: 10 for the material, 10 for the cache)"""
+
+
+@dataclass
+class NetworkConfig:
+    encoding: EncodingConfig = field(default_factory=EncodingConfig)
+    """how points are encoded"""
+    hidden: int = 64
+    """hidden width of the MLP"""
+    layers: int = 2
+    """hidden layers of the MLP (paper: 8 x 512 for the material, 4 x 512 for the cache)"""
+
+
+@dataclass
+class LightConfig:
+    kind: str = "sg"
+    """``sg``: 128 spherical Gaussians (the paper); ``envmap``: an equirectangular grid (ablation, Fig. 5)"""
+    num_lobes: int = 128
+    """SG lobes"""
+    sharpness_min: float = 5.0
+    """initial sharpness of the widest lobes"""
+    sharpness_max: float = 3000.0
+    """initial sharpness of the sharpest lobes (a 1-degree sun needs thousands)"""
+    init_radiance: float = 0.5
+    """initial environment radiance, spread over the lobes"""
+
+
+@dataclass
+class FitConfig:
+    preset: str = "cpu"
+    """the preset these values started from"""
+    steps: int = 3000
+    """optimisation steps (observed and unobserved together)"""
+    batch_pixels: int = 1024
+    """object pixels per observed step"""
+    background_pixels: int = 256
+    """background pixels per observed step (Eq. 7, third term)"""
+    num_samples: int = 8
+    """N estimator samples per point; each draws 3 directions (cosine, GGX, SG): paper N = 64"""
+    unobserved_points: int = 1024
+    """secondary hits per unobserved step (Eq. 8)"""
+    unobserved_every: int = 10
+    """K: every K-th step trains on unobserved rays instead (paper K = 10)"""
+    unobserved: bool = True
+    """ablation: train on unobserved rays at all"""
+    indirect: bool = True
+    """ablation: secondary hits see the radiance cache (off: black)"""
+    visibility: bool = True
+    """ablation: trace secondary rays (off: every direction sees the environment, PhySG-style)"""
+    roughness_warmup: float = 0.4
+    """fraction of the steps with roughness held at 0.5 (paper: 50 of 120 epochs)"""
+    lr: float = 5e-3
+    """Adam learning rate for the networks (paper 5e-4 at 8x512 MLPs; a hash grid wants ~1e-2)"""
+    lr_light: float = 2e-2
+    """Adam learning rate for the SG parameters"""
+    lr_decay: float = 0.1
+    """learning rates fall exponentially to this fraction at the last step"""
+    beta1: float = 1.0
+    """weight of the cache's own colour loss (Eq. 7)"""
+    beta2: float = 1.0
+    """weight of the background loss (Eq. 7)"""
+    tonemap: str = "log1p"
+    """colour space of the losses: ``none`` (linear, as Eq. 7) or ``log1p`` (keeps highlights from dominating)"""
+    secondary_buffer: int = 65536
+    """secondary hits kept for the unobserved step"""
+    ray_offset: float = 1e-4
+    """secondary-ray origin offset, as a fraction of the scene's bounding-box diagonal"""
+    seed: int = 0
+    """seeds parameters, pixel batches and direction samples"""
+    material: NetworkConfig = field(default_factory=NetworkConfig)
+    """material field M"""
+    cache: NetworkConfig = field(default_factory=NetworkConfig)
+    """radiance cache L"""
+    cache_dir_freqs: int = 4
+    """Fourier frequencies of the cache's direction inputs (paper: 4)"""
+    light: LightConfig = field(default_factory=LightConfig)
+    """environment light"""
+    checkpoint_every_s: float = 120.0
+    """seconds between checkpoints"""
+    preview_every: int = 500
+    """steps between preview images (0: none)"""
+    threads: int = 0
+    """CPU threads for torch (0: the cores this process may use)"""
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "cpu": {},
+    "paper": {
+        "steps": 60000, "batch_pixels": 2048, "num_samples": 64, "lr": 5e-4, "lr_light": 5e-3,
+        "tonemap": "none", "roughness_warmup": 50 / 120,
+        "material": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 8},
+        "cache": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 4},
+        "light": {"sharpness_max": 3000.0},
+    },
+    "tiny": {
+        "steps": 20, "batch_pixels": 64, "background_pixels": 16, "num_samples": 2, "unobserved_points": 64,
+        "unobserved_every": 5, "checkpoint_every_s": 0.0, "preview_every": 0,
+        "material": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
+        "cache": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
+        "light": {"num_lobes": 16},
+    },
+}
+"""``cpu``: designed for 2 CPU cores; ``paper``: the paper's sizes, for a GPU; ``tiny``: tests."""
+
+
+def _merge(cls: type, values: dict[str, Any], where: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for key, value in values.items():
+        if key not in fields:
+            raise KeyError(f"unknown config field {where}{key}")
+        sub = fields[key].default_factory if fields[key].default_factory is not dataclasses.MISSING else None
+        if sub is not None and dataclasses.is_dataclass(sub):
+            kwargs[key] = _merge(sub, value, f"{where}{key}.")
+        else:
+            kwargs[key] = value
+    return cls(**kwargs)
+
+
+def config_from_dict(values: dict[str, Any]) -> FitConfig:
+    """Build a FitConfig from a (possibly partial, nested) dict; unknown keys raise ``KeyError``."""
+    return _merge(FitConfig, values, "")
+
+
+def config_to_dict(cfg: FitConfig) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def _parse_value(text: str, current: Any) -> Any:
+    if isinstance(current, bool):
+        if text.lower() in ("1", "true", "on", "yes"):
+            return True
+        if text.lower() in ("0", "false", "off", "no"):
+            return False
+        raise ValueError(f"expected on/off, got {text!r}")
+    if isinstance(current, int):
+        return int(text)
+    if isinstance(current, float):
+        return float(text)
+    return text
+
+
+def resolve_config(preset: str, overrides: list[str]) -> FitConfig:
+    """The preset, then ``key=value`` overrides with dotted keys (``material.hidden=128``)."""
+    if preset not in PRESETS:
+        raise KeyError(f"unknown preset {preset!r} (known: {', '.join(PRESETS)})")
+    values = config_to_dict(config_from_dict({**PRESETS[preset], "preset": preset}))
+    for item in overrides:
+        if "=" not in item:
+            raise ValueError(f"--set wants key=value, got {item!r}")
+        key, text = item.split("=", 1)
+        node = values
+        parts = key.split(".")
+        for p in parts[:-1]:
+            if not isinstance(node.get(p), dict):
+                raise KeyError(f"unknown config field {key}")
+            node = node[p]
+        if parts[-1] not in node or isinstance(node[parts[-1]], dict):
+            raise KeyError(f"unknown config field {key}")
+        node[parts[-1]] = _parse_value(text, node[parts[-1]])
+    return config_from_dict(values)

@@ -1,0 +1,59 @@
+"""First hits of every training pixel, cast once and cached (secondary rays are cast every step)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from ..camera import pixel_rays
+from ..data.scene import SceneData
+from ..errors import InputError
+from ..geometry.base import Geometry, Rays
+from .model import SurfacePoints
+
+
+@dataclass(frozen=True)
+class TrainingPixels:
+    """Object pixels at their first hits, and background pixels with their view directions."""
+
+    points: SurfacePoints
+    rgb: Float[Tensor, "P 3"]
+    bg_dirs: Float[Tensor, "Q 3"]
+    bg_rgb: Float[Tensor, "Q 3"]
+
+    def to(self, device: torch.device | str) -> "TrainingPixels":
+        p = self.points
+        return TrainingPixels(SurfacePoints(*(t.to(device) for t in (p.position, p.normal, p.geometric_normal, p.wo))),
+                              self.rgb.to(device), self.bg_dirs.to(device), self.bg_rgb.to(device))
+
+
+def view_rays(scene: SceneData, view: int) -> tuple[Float[Tensor, "H W 3"], Float[Tensor, "H W 3"]]:
+    """Float32 origins and unit directions of every pixel of one view (OpenCV cameras)."""
+    o, d = pixel_rays(scene.cameras.c2w[view], scene.cameras.K[view], scene.height, scene.width)
+    return o.float(), d.float()
+
+
+def first_hits(scene: SceneData, geometry: Geometry) -> TrainingPixels:
+    """Cast every pixel once. Object pixels: the ray hits the mesh (and the mask, if any, says object).
+    Background pixels: no hit (and the mask, if any, says background). Pixels where mask and
+    geometry disagree (silhouette errors, anti-aliased edges) are left out of both."""
+    pts, rgb, bg_d, bg_c = [], [], [], []
+    for v in range(len(scene)):
+        o, d = view_rays(scene, v)
+        hit = geometry.intersect(Rays(o.reshape(-1, 3), d.reshape(-1, 3)))
+        colour = scene.images[v].reshape(-1, 3)
+        obj, bg = hit.valid, ~hit.valid
+        if scene.masks is not None:
+            m = scene.masks[v].reshape(-1)
+            obj, bg = obj & m, bg & ~m
+        dirs = d.reshape(-1, 3)
+        pts.append(SurfacePoints(hit.position[obj], hit.normal[obj], hit.geometric_normal[obj], -dirs[obj]))
+        rgb.append(colour[obj])
+        bg_d.append(dirs[bg])
+        bg_c.append(colour[bg])
+    points = SurfacePoints.cat(pts)
+    if len(points) == 0:
+        raise InputError(scene.root, "no training pixel sees the geometry: do the cameras, masks and mesh agree?")
+    return TrainingPixels(points, torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c))

@@ -1,0 +1,146 @@
+"""The training loop: alternate Eq. 7 and Eq. 8, warm up roughness, checkpoint, resume.
+
+The loop asks small policy objects what to do at each step (:mod:`nefii.fit.policies`) and
+keeps every source of randomness in one generator, whose state is checkpointed with the
+model, the optimiser and the secondary-hit buffer: a resumed run continues the same sequence.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from ..geometry.base import Geometry
+from ..io.atomic import atomic_path
+from .config import FitConfig, config_to_dict
+from .losses import LossTerms, ObservedBatch, SecondaryHitBuffer, observed_loss, unobserved_loss
+from .model import NeFIIModel, Transport
+from .pixels import TrainingPixels
+from .policies import Alternation, RoughnessWarmup
+
+
+class NonFiniteLoss(RuntimeError):
+    """A step produced NaN/inf: reported, never saved."""
+
+
+@dataclass
+class StepLog:
+    step: int
+    kind: str
+    """``observed`` or ``unobserved``"""
+    terms: LossTerms
+
+
+class Trainer:
+    def __init__(self, cfg: FitConfig, model: NeFIIModel, geometry: Geometry, pixels: TrainingPixels,
+                 device: torch.device) -> None:
+        self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
+        env_params = list(model.env.parameters())
+        env_ids = {id(p) for p in env_params}
+        nets = [p for p in model.parameters() if id(p) not in env_ids]
+        self.optimizer = torch.optim.Adam([{"params": nets, "lr": cfg.lr}, {"params": env_params, "lr": cfg.lr_light}])
+        gamma = cfg.lr_decay ** (1.0 / max(cfg.steps, 1))
+        self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma)
+        self.generator = torch.Generator(device=device).manual_seed(cfg.seed)
+        self.buffer = SecondaryHitBuffer(cfg.secondary_buffer)
+        self.warmup = RoughnessWarmup(int(round(cfg.roughness_warmup * cfg.steps)))
+        self.alternation = Alternation(cfg.unobserved_every, cfg.unobserved)
+        self.transport = Transport(indirect=cfg.indirect, visibility=cfg.visibility)
+        self.step = 0
+
+    # ---- one step
+    def _observed_batch(self) -> ObservedBatch:
+        px, g = self.pixels, self.generator
+        i = torch.randint(len(px.points), (self.cfg.batch_pixels,), generator=g, device=self.device)
+        nb = min(self.cfg.background_pixels, len(px.bg_dirs))
+        j = torch.randint(max(len(px.bg_dirs), 1), (nb,), generator=g, device=self.device)
+        return ObservedBatch(px.points[i], px.rgb[i], px.bg_dirs[j], px.bg_rgb[j])
+
+    def train_step(self) -> StepLog:
+        cfg, step = self.cfg, self.step
+        rough = self.warmup.override(step)
+        if self.alternation.unobserved(step) and len(self.buffer) > 0:
+            pts = self.buffer.sample(cfg.unobserved_points, self.generator)
+            terms = unobserved_loss(self.model, self.geometry, pts, cfg.num_samples, self.generator,
+                                    self.transport, rough, cfg.tonemap)
+            kind = "unobserved"
+        else:
+            terms, traced = observed_loss(self.model, self.geometry, self._observed_batch(), cfg.num_samples,
+                                          self.generator, self.transport, rough, cfg.beta1, cfg.beta2, cfg.tonemap)
+            self.buffer.add(traced.secondary)
+            kind = "observed"
+        if not torch.isfinite(terms.total):
+            raise NonFiniteLoss(f"step {step}: {kind} loss is {float(terms.total)}")
+        self.optimizer.zero_grad(set_to_none=True)
+        terms.total.backward()
+        self.optimizer.step()
+        self.scheduler.step()
+        self.step += 1
+        return StepLog(step, kind, terms)
+
+    # ---- checkpoints
+    def state_dict(self) -> dict:
+        items = self.buffer._items
+        return {
+            "step": self.step,
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "generator": self.generator.get_state(),
+            "buffer": None if items is None else {
+                "next": self.buffer._next, "size": self.buffer._size,
+                "tensors": [items.position, items.normal, items.geometric_normal, items.wo]},
+            "config": config_to_dict(self.cfg),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        from .model import SurfacePoints
+
+        self.step = int(state["step"])
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.generator.set_state(state["generator"])
+        b = state["buffer"]
+        if b is not None:
+            self.buffer._items = SurfacePoints(*(t.to(self.device) for t in b["tensors"]))
+            self.buffer._next, self.buffer._size = int(b["next"]), int(b["size"])
+
+    def save_checkpoint(self, folder: Path) -> Path:
+        path = folder / f"step_{self.step:07d}.pt"
+        with atomic_path(path) as tmp:
+            torch.save(self.state_dict(), tmp)
+        for old in sorted(folder.glob("step_*.pt"))[:-2]:  # keep the last two
+            old.unlink()
+        return path
+
+    @staticmethod
+    def latest_checkpoint(folder: Path) -> Path | None:
+        found = sorted(folder.glob("step_*.pt"))
+        return found[-1] if found else None
+
+    # ---- the loop
+    def fit(self, checkpoint_dir: Path, log=None, progress: bool = True) -> None:
+        """Train to ``cfg.steps``, checkpointing every ``checkpoint_every_s`` seconds and at the end."""
+        last_ckpt = time.monotonic()
+        bar = tqdm(total=self.cfg.steps, initial=self.step, desc="fit", unit="step", disable=not progress,
+                   dynamic_ncols=True)
+        ema = math.nan
+        while self.step < self.cfg.steps:
+            rec = self.train_step()
+            if rec.kind == "observed":
+                v = float(rec.terms.render)
+                ema = v if math.isnan(ema) else 0.95 * ema + 0.05 * v
+                bar.set_postfix(loss=f"{ema:.4f}", refresh=False)
+            if log is not None:
+                log(rec)
+            bar.update(1)
+            if time.monotonic() - last_ckpt >= self.cfg.checkpoint_every_s and self.step < self.cfg.steps:
+                self.save_checkpoint(checkpoint_dir)
+                last_ckpt = time.monotonic()
+        bar.close()
+        self.save_checkpoint(checkpoint_dir)
