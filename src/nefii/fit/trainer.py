@@ -133,7 +133,7 @@ class Trainer:
         while self.step < self.cfg.steps:
             rec = self.train_step()
             if rec.kind == "observed":
-                v = float(rec.terms.render)
+                v = rec.terms.render.item()
                 ema = v if math.isnan(ema) else 0.95 * ema + 0.05 * v
                 bar.set_postfix(loss=f"{ema:.4f}", refresh=False)
             if log is not None:

@@ -1,0 +1,90 @@
+"""``nefii fit DATA --out RUN``: the NeFII joint optimisation on frozen geometry."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from ..data import load_scene
+from ..errors import InputError
+from ..fit.build import build_model
+from ..fit.config import PRESETS, FitConfig, resolve_config
+from ..fit.logging import RunLogger
+from ..fit.outputs import read_config, write_config, write_outputs
+from ..fit.pixels import first_hits
+from ..fit.trainer import NonFiniteLoss, Trainer
+from ..geometry import MeshGeometry
+from .common import pick_device, set_threads
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("fit", help="recover materials, SG lighting and the radiance cache", description=__doc__)
+    p.add_argument("data", type=Path, help="dataset folder (any format nefii reads)")
+    p.add_argument("--out", type=Path, required=True, help="run folder to write")
+    p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="starting configuration")
+    p.add_argument("--mesh", type=Path, default=None, help="frozen geometry (default: the scene's mesh.ply)")
+    p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
+    p.add_argument("--device", default="auto", help="cpu | cuda | cuda:N | auto")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config field, e.g. --set steps=500 --set material.hidden=128")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def fit_config(args: argparse.Namespace) -> FitConfig:
+    try:
+        cfg = resolve_config(args.preset, args.overrides)
+    except (KeyError, ValueError) as e:
+        raise InputError(None, f"bad configuration: {e.args[0] if e.args else e}") from None
+    if args.resume and (args.out / "config.json").is_file():
+        saved = read_config(args.out)
+        if args.overrides or args.preset != saved.preset:
+            print("nefii fit: --resume continues with the run's own config.json; --preset/--set are ignored")
+        cfg = saved
+    return cfg
+
+
+def run(args: argparse.Namespace) -> int:
+    out: Path = args.out
+    if not args.resume and (out / "checkpoints").exists():
+        raise InputError(out, "already holds a run: use --resume to continue it, or another --out")
+    cfg = fit_config(args)
+    device = pick_device(args.device)
+    threads = set_threads(cfg.threads)
+    scene = load_scene(args.data, "train")
+    mesh_path = args.mesh or scene.mesh_path
+    if mesh_path is None:
+        raise InputError(args.data, "no geometry: the dataset has no mesh.ply; pass --mesh PATH")
+    geometry = MeshGeometry.from_file(mesh_path)
+    box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
+    print(f"nefii fit: {len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
+          f"mesh {mesh_path} ({len(geometry.faces)} triangles); device {device}, {threads} threads")
+    pixels = first_hits(scene, geometry).to(device)
+    print(f"nefii fit: {len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels")
+
+    model = build_model(cfg, box)
+    trainer = Trainer(cfg, model, geometry, pixels, device)
+    ckpt_dir = out / "checkpoints"
+    if args.resume:
+        last = Trainer.latest_checkpoint(ckpt_dir)
+        if last is None:
+            raise InputError(ckpt_dir, "no checkpoint to resume from")
+        trainer.load_state_dict(torch.load(last, map_location=device, weights_only=False))
+        print(f"nefii fit: resumed from {last} at step {trainer.step}")
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt_dir.mkdir(exist_ok=True)
+    write_config(out, cfg)
+    logger = RunLogger(out, cfg)
+    try:
+        trainer.fit(ckpt_dir, log=logger, progress=not args.quiet)
+    except NonFiniteLoss as e:
+        print(f"nefii fit: error: {e}; the last good checkpoint is in {ckpt_dir}")
+        return 1
+    finally:
+        logger.close()
+    write_outputs(out, cfg, trainer.model, box, Path(args.data).resolve(), Path(mesh_path).resolve())
+    summary = {"steps": trainer.step, "outputs": ["model.pt", "envmap.exr", "sg.npy", "config.json"]}
+    print(f"nefii fit: done, {json.dumps(summary)} in {out}")
+    return 0

@@ -1,0 +1,103 @@
+"""Shared by the readers: read each view's image and mask, and assemble :class:`SceneData`."""
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from .files import read_image, read_mask
+from .scene import Cameras, GroundTruth, Relit, SceneData
+from .validate import check_mask, check_size
+
+
+@dataclass(frozen=True)
+class View:
+    """Where one view's files are."""
+
+    image: Path
+    """its image file"""
+    mask: Path | None = None
+    """its mask file; ``None``: the image's alpha, if every view has one, gives the mask"""
+
+
+def read_views(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Images ``(N, H, W, 3)`` linear float32 and masks ``(N, H, W)`` bool or ``None``.
+
+    Masks come from the mask files when views name them (then every view must), else from
+    alpha > 0.5 when every image has an alpha channel and some alpha is below 1, else ``None``.
+    Different sizes, NaN/inf pixels and empty masks raise :class:`InputError` naming the file.
+    """
+    if not views:
+        raise InputError(None, "no views to read")
+    rgbs, alphas = [], []
+    for v in views:
+        rgb, alpha = read_image(v.image)
+        if rgbs:
+            check_size(rgb.shape, v.image, rgbs[0].shape[:2], views[0].image)
+        rgbs.append(rgb)
+        alphas.append(alpha)
+    size = rgbs[0].shape[:2]
+    masks: list[np.ndarray] | None = None
+    if any(v.mask is not None for v in views):
+        masks = []
+        for v in views:
+            if v.mask is None:
+                raise InputError(v.image, "this view has no mask file while other views do")
+            m = read_mask(v.mask)
+            check_size(m.shape, v.mask, size, views[0].image)
+            check_mask(m, v.mask)
+            masks.append(m)
+    elif all(a is not None for a in alphas) and any(bool((a < 1.0).any()) for a in alphas):
+        masks = []
+        for v, a in zip(views, alphas):
+            m = a > 0.5
+            check_mask(m, v.image)
+            masks.append(m)
+    return np.stack(rgbs), (None if masks is None else np.stack(masks))
+
+
+def frame_indices(stems: Sequence[str]) -> tuple[int, ...]:
+    """The trailing integer of each stem (``r_12`` -> 12) when all have one and they are distinct,
+    else the positions ``0..N-1``."""
+    found = [re.search(r"(\d+)$", s) for s in stems]
+    if all(found):
+        idx = tuple(int(m.group(1)) for m in found)  # type: ignore[union-attr]
+        if len(set(idx)) == len(idx):
+            return idx
+    return tuple(range(len(stems)))
+
+
+def relative_name(path: Path, root: Path) -> str:
+    """``path`` relative to ``root`` with POSIX separators."""
+    return Path(os.path.relpath(path, root)).as_posix()
+
+
+def make_scene(*, root: Path, split: str, fmt: str, views: Sequence[View], images: np.ndarray,
+               masks: np.ndarray | None, K: Sequence[np.ndarray], c2w: Sequence[np.ndarray],
+               indices: Sequence[int] | None = None, scene_to_source: np.ndarray | None = None,
+               ground_truth: GroundTruth | None = None, mesh_path: Path | None = None,
+               envmap: np.ndarray | None = None, relit: Sequence[Relit] = ()) -> SceneData:
+    """Assemble validated numpy pieces into :class:`SceneData` (torch, CPU)."""
+    names = tuple(relative_name(v.image, root) for v in views)
+    if indices is None:
+        indices = frame_indices([v.image.name.split(".")[0] for v in views])
+    cams = Cameras(K=torch.from_numpy(np.stack(K).astype(np.float64)),
+                   c2w=torch.from_numpy(np.stack(c2w).astype(np.float64)),
+                   height=int(images.shape[1]), width=int(images.shape[2]))
+    return SceneData(
+        images=torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32)),
+        masks=None if masks is None else torch.from_numpy(np.ascontiguousarray(masks, dtype=bool)),
+        cameras=cams, names=names, indices=tuple(int(i) for i in indices), split=split, format=fmt,
+        root=root,
+        scene_to_source=torch.from_numpy(np.eye(4) if scene_to_source is None
+                                         else np.asarray(scene_to_source, np.float64)),
+        ground_truth=ground_truth, mesh_path=mesh_path,
+        envmap=None if envmap is None else torch.from_numpy(np.ascontiguousarray(envmap, dtype=np.float32)),
+        relit=tuple(relit),
+    )

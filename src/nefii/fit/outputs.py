@@ -1,0 +1,84 @@
+"""What a fit leaves in its run folder, and how eval/relight/export read it back.
+
+    RUN/config.json        the resolved FitConfig (read back through the same dataclasses)
+    RUN/model.pt           fields' weights + config + scene box + data and mesh paths
+    RUN/envmap.exr         the recovered SGs as an equirectangular image (docs/design.md mapping)
+    RUN/sg.npy             (K, 7) float32: axis xyz, sharpness, amplitude rgb
+    RUN/checkpoints/       resumable training state (step_XXXXXXX.pt, atomic)
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..io.atomic import atomic_path, write_text_atomic
+from ..io.exr import write_exr
+from ..render.sg import SGMixture, sg_to_equirect
+from .build import build_model
+from .config import FitConfig, config_from_dict, config_to_dict
+from .model import NeFIIModel
+
+ENVMAP_SIZE = (256, 512)
+
+
+@dataclass(frozen=True)
+class FittedRun:
+    folder: Path
+    config: FitConfig
+    model: NeFIIModel
+    data: Path
+    """the dataset the run was fitted on"""
+    mesh: Path
+    """the frozen geometry"""
+
+
+def sg_array(sg: SGMixture) -> np.ndarray:
+    """``(K, 7)``: axis, sharpness, amplitude."""
+    return torch.cat([sg.axis, sg.sharpness.unsqueeze(-1), sg.amplitude], -1).detach().cpu().float().numpy()
+
+
+def write_config(folder: Path, cfg: FitConfig) -> None:
+    write_text_atomic(folder / "config.json", json.dumps(config_to_dict(cfg), indent=2) + "\n")
+
+
+def read_config(folder: Path) -> FitConfig:
+    path = folder / "config.json"
+    try:
+        return config_from_dict(json.loads(path.read_text()))
+    except FileNotFoundError:
+        raise InputError(path, "not found: is this a nefii run folder?") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise InputError(path, f"not a valid nefii config ({e})") from None
+
+
+def write_outputs(folder: Path, cfg: FitConfig, model: NeFIIModel, box: tuple[torch.Tensor, torch.Tensor],
+                  data: Path, mesh: Path) -> None:
+    """model.pt, envmap.exr, sg.npy (each written atomically)."""
+    with atomic_path(folder / "model.pt") as tmp:
+        torch.save({"config": config_to_dict(cfg), "state": model.state_dict(),
+                    "box": [b.cpu() for b in box], "data": str(data), "mesh": str(mesh)}, tmp)
+    with torch.no_grad():
+        sg = model.env()
+        write_exr(folder / "envmap.exr", sg_to_equirect(sg, *ENVMAP_SIZE).cpu().numpy())
+        with atomic_path(folder / "sg.npy") as tmp:
+            np.save(tmp, sg_array(sg))
+
+
+def load_run(folder: str | Path, device: torch.device | str = "cpu") -> FittedRun:
+    folder = Path(folder)
+    path = folder / "model.pt"
+    if not path.is_file():
+        raise InputError(path, "not found: has `nefii fit` finished in this folder?")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=False)
+        cfg = config_from_dict(blob["config"])
+        model = build_model(cfg, tuple(blob["box"]))
+        model.load_state_dict(blob["state"])
+    except Exception as e:
+        raise InputError(path, f"not a readable nefii model ({type(e).__name__}: {e})") from None
+    return FittedRun(folder, cfg, model.to(device).eval(), Path(blob["data"]), Path(blob["mesh"]))
