@@ -121,7 +121,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
     "tiny": {
         "steps": 20, "batch_pixels": 64, "background_pixels": 16, "num_samples": 2, "unobserved_points": 64,
-        "unobserved_every": 5, "checkpoint_every_s": 0.0, "preview_every": 0,
+        "unobserved_every": 5, "checkpoint_every_s": 60.0, "preview_every": 0, "secondary_buffer": 4096,
         "material": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
         "cache": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
         "light": {"num_lobes": 16},

@@ -1,0 +1,135 @@
+"""End to end: nefii fit and nefii eval on a tiny rendered scene; resume after SIGKILL; bad input."""
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fit_fixtures import write_rendered_scene
+from nefii.cli.main import main
+from nefii.evaluate.table1 import METRIC_KEYS
+from nefii.fit.config import FitConfig, config_from_dict, config_to_dict, resolve_config
+from nefii.fit.losses import SecondaryHitBuffer
+from nefii.fit.model import SurfacePoints
+from nefii.fit.policies import Alternation, RoughnessWarmup
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return write_rendered_scene(tmp_path_factory.mktemp("scene"), res=16, n_train=6, n_test=2)
+
+
+def read_log(run: Path) -> list[dict]:
+    with open(run / "log.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def test_fit_then_eval_writes_everything_and_the_loss_goes_down(tiny_scene, tmp_path):
+    run = tmp_path / "run"
+    rc = main(["fit", str(tiny_scene), "--out", str(run), "--preset", "tiny", "--quiet",
+               "--set", "steps=80", "--set", "lr=0.02"])
+    assert rc == 0
+    for name in ("model.pt", "envmap.exr", "sg.npy", "config.json", "log.csv"):
+        assert (run / name).is_file(), name
+    sg = np.load(run / "sg.npy")
+    assert sg.shape == (16, 7) and np.isfinite(sg).all()
+    assert np.allclose(np.linalg.norm(sg[:, :3], axis=-1), 1.0, atol=1e-5)
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["steps"] == 80 and cfg["preset"] == "tiny"
+    rows = [r for r in read_log(run) if r["kind"] == "observed"]
+    early = np.mean([float(r["total"]) for r in rows[:2]])
+    late = np.mean([float(r["total"]) for r in rows[-2:]])
+    assert late < 0.8 * early, (early, late)
+
+    assert main(["eval", str(run), "--spp", "2", "--quiet"]) == 0
+    metrics = json.loads((run / "eval" / "metrics.json").read_text())
+    for block in ("masked", "whole_image"):
+        assert set(metrics[block]) == set(METRIC_KEYS)
+        assert metrics[block]["albedo_lpips"] is None
+        for k in ("roughness_mse", "albedo_psnr", "rgb_psnr", "specular_psnr"):
+            assert isinstance(metrics[block][k], float), (block, k)
+    assert len(metrics["views"]) == 2
+    for k in (0, 1):
+        for kind in ("rgb", "specular", "albedo", "roughness"):
+            assert (run / "eval" / f"{k}_{kind}.exr").is_file()
+        assert (run / "eval" / f"{k}_grid.png").is_file()
+    assert (run / "eval" / "metrics.md").read_text().count("Albedo PSNR") == 2
+
+
+def _fit_cmd(scene: Path, run: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "nefii.cli.main", "fit", str(scene), "--out", str(run), "--preset", "tiny",
+            "--quiet", "--set", "steps=60", "--set", "checkpoint_every_s=0", "--set", "threads=1", *extra]
+
+
+def test_resume_after_sigkill_matches_an_uninterrupted_run(tiny_scene, tmp_path):
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    straight = tmp_path / "straight"
+    subprocess.run(_fit_cmd(tiny_scene, straight), check=True, env=env, capture_output=True)
+
+    killed = tmp_path / "killed"
+    proc = subprocess.Popen(_fit_cmd(tiny_scene, killed), env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline and not list((killed / "checkpoints").glob("step_00000[2-4]*.pt")):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (killed / "model.pt").exists(), "the run finished before it could be killed"
+    assert not list((killed / "checkpoints").glob(".*")), "a half-written checkpoint was left behind"
+    subprocess.run(_fit_cmd(tiny_scene, killed, "--resume"), check=True, env=env, capture_output=True)
+
+    a = torch.load(straight / "model.pt", weights_only=False)["state"]
+    b = torch.load(killed / "model.pt", weights_only=False)["state"]
+    for k in a:
+        assert torch.allclose(a[k], b[k], rtol=1e-4, atol=1e-5), k
+
+
+def test_fit_bad_input_is_one_line_and_exit_2(tiny_scene, tmp_path, capsys):
+    assert main(["fit", str(tmp_path / "missing"), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "missing" in err
+    assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "r"), "--set", "no_such_key=1"]) == 2
+    assert "no_such_key" in capsys.readouterr().err
+    assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "r"), "--mesh", str(tmp_path / "x.ply")]) == 2
+    assert "x.ply" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+    assert main(["eval", str(tmp_path / "norun")]) == 2
+    assert "model.pt" in capsys.readouterr().err
+
+
+def test_config_round_trips_and_rejects_unknown_fields():
+    cfg = resolve_config("paper", ["material.hidden=128", "indirect=off", "tonemap=none"])
+    assert cfg.material.hidden == 128 and cfg.material.layers == 8 and cfg.indirect is False
+    assert config_from_dict(json.loads(json.dumps(config_to_dict(cfg)))) == cfg
+    with pytest.raises(KeyError):
+        resolve_config("cpu", ["material.nope=1"])
+    with pytest.raises(ValueError):
+        resolve_config("cpu", ["indirect=maybe"])
+    assert isinstance(resolve_config("cpu", []), FitConfig)
+
+
+def test_policies():
+    w = RoughnessWarmup(steps=5)
+    assert [w.override(s) for s in (0, 4, 5, 100)] == [0.5, 0.5, None, None]
+    a = Alternation(every=10)
+    assert [s for s in range(30) if a.unobserved(s)] == [9, 19, 29]
+    assert not any(Alternation(every=10, enabled=False).unobserved(s) for s in range(30))
+
+
+def test_secondary_buffer_is_a_ring():
+    buf = SecondaryHitBuffer(capacity=5)
+    mk = lambda a, b: SurfacePoints(*(torch.arange(a, b, dtype=torch.float32).unsqueeze(-1).repeat(1, 3)
+                                      for _ in range(4)))
+    buf.add(mk(0, 3))
+    assert len(buf) == 3
+    buf.add(mk(3, 7))  # 7 points into 5 slots: 0 and 1 are overwritten
+    assert len(buf) == 5
+    vals = set(buf.sample(200, torch.Generator().manual_seed(0)).position[:, 0].tolist())
+    assert vals == {2.0, 3.0, 4.0, 5.0, 6.0}
