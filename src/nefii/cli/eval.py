@@ -18,7 +18,6 @@ from ..geometry import MeshGeometry
 from ..io.atomic import atomic_dir
 from ..io.exr import write_exr
 from ..io.images import write_png
-from ..render.sg import sg_to_equirect
 from .common import pick_device, set_threads
 
 
@@ -81,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
                 flags.append(False)
             write_grid(out / f"{k}_grid.png", rows, flags)
         with torch.no_grad():
-            rec = _np(sg_to_equirect(fitted.model.env(), *ENVMAP_SIZE))
+            rec = _np(fitted.model.env.to_equirect(*ENVMAP_SIZE))
         env_rows = [tonemap_display(rec)]
         if scene.envmap is not None:
             gt_env = _resize(_np(scene.envmap), ENVMAP_SIZE)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import torch
@@ -85,6 +84,6 @@ def run(args: argparse.Namespace) -> int:
     finally:
         logger.close()
     write_outputs(out, cfg, trainer.model, box, Path(args.data).resolve(), Path(mesh_path).resolve())
-    summary = {"steps": trainer.step, "outputs": ["model.pt", "envmap.exr", "sg.npy", "config.json"]}
-    print(f"nefii fit: done, {json.dumps(summary)} in {out}")
+    written = [n for n in ("model.pt", "envmap.exr", "sg.npy", "config.json") if (out / n).exists()]
+    print(f"nefii fit: done, {trainer.step} steps; wrote {', '.join(written)} in {out}")
     return 0

@@ -12,7 +12,6 @@ from ..camera import pixel_rays
 from ..data.scene import Cameras
 from ..fit.model import NeFIIModel, SurfacePoints, Transport, path_trace
 from ..geometry.base import Geometry, Rays
-from ..render.sg import sg_eval
 
 
 @dataclass(frozen=True)
@@ -44,7 +43,7 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
     hit = geometry.intersect(Rays(o, d))
     idx = hit.valid.nonzero().squeeze(-1)
     n_px = H * W
-    rgb = sg_eval(d, model.env())
+    rgb = model.env.radiance(d)
     out = {k: torch.zeros(n_px, 3, device=device) for k in ("specular", "diffuse", "albedo", "normal", "cache")}
     rough = torch.zeros(n_px, device=device)
     for c in idx.split(chunk):

@@ -7,8 +7,11 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from ..render.envmap import build_envmap_distribution, envmap_lookup
+from ..render.equirect import pixel_directions
 from ..render.frame import normalize
-from ..render.sg import SGMixture, fibonacci_sphere
+from ..render.lights import EnvmapLightSampler, LightSampler, SGLightSampler
+from ..render.sg import SGMixture, fibonacci_sphere, sg_eval, sg_to_equirect
 
 
 class SGEnvironment(nn.Module):
@@ -41,6 +44,34 @@ class SGEnvironment(nn.Module):
                          amplitude=self.log_amplitude.exp())
 
     def radiance(self, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
-        from ..render.sg import sg_eval
-
         return sg_eval(w, self())
+
+    def light_sampler(self) -> LightSampler:
+        """Eq. 5-6 sampling of the current lobes (no gradient flows through sampling)."""
+        sg = self()
+        return SGLightSampler(SGMixture(sg.axis.detach(), sg.sharpness.detach(), sg.amplitude.detach()))
+
+    def to_equirect(self, height: int, width: int) -> Float[Tensor, "H W 3"]:
+        return sg_to_equirect(self(), height, width)
+
+
+class EnvmapEnvironment(nn.Module):
+    """The ablation of Fig. 5: an equirectangular grid of free RGB radiance values (log-parameterised),
+    looked up piecewise-constantly and sampled by its piecewise-constant 2D distribution."""
+
+    def __init__(self, height: int = 32, width: int = 64, init_radiance: float = 0.5) -> None:
+        super().__init__()
+        self.log_radiance = nn.Parameter(torch.full((height, width, 3), math.log(init_radiance)))
+
+    def image(self) -> Float[Tensor, "H W 3"]:
+        return self.log_radiance.exp()
+
+    def radiance(self, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
+        return envmap_lookup(self.image(), w)
+
+    def light_sampler(self) -> LightSampler:
+        return EnvmapLightSampler(build_envmap_distribution(self.image().detach()))
+
+    def to_equirect(self, height: int, width: int) -> Float[Tensor, "H W 3"]:
+        d = pixel_directions(height, width, device=self.log_radiance.device)
+        return self.radiance(d)

@@ -6,7 +6,7 @@ from torch import Tensor
 
 from ..fields.cache import RadianceCache
 from ..fields.encodings import FourierFeatures, HashGrid
-from ..fields.environment import SGEnvironment
+from ..fields.environment import EnvmapEnvironment, SGEnvironment
 from ..fields.material import MaterialField
 from .config import EncodingConfig, FitConfig
 from .model import NeFIIModel
@@ -30,6 +30,11 @@ def build_model(cfg: FitConfig, box: tuple[Tensor, Tensor]) -> NeFIIModel:
     material = MaterialField(make_encoding(cfg.material.encoding), cfg.material.hidden, cfg.material.layers, box)
     cache = RadianceCache(make_encoding(cfg.cache.encoding), cfg.cache_dir_freqs, cfg.cache.hidden,
                           cfg.cache.layers, box)
-    env = SGEnvironment(cfg.light.num_lobes, cfg.light.sharpness_min, cfg.light.sharpness_max,
-                        cfg.light.init_radiance, seed=cfg.seed)
+    if cfg.light.kind == "sg":
+        env = SGEnvironment(cfg.light.num_lobes, cfg.light.sharpness_min, cfg.light.sharpness_max,
+                            cfg.light.init_radiance, seed=cfg.seed)
+    elif cfg.light.kind == "envmap":
+        env = EnvmapEnvironment(cfg.light.envmap_height, 2 * cfg.light.envmap_height, cfg.light.init_radiance)
+    else:
+        raise ValueError(f"unknown light kind {cfg.light.kind!r} (sg | envmap)")
     return NeFIIModel(material, cache, env)

@@ -50,6 +50,8 @@ class LightConfig:
     """initial sharpness of the sharpest lobes (a 1-degree sun needs thousands)"""
     init_radiance: float = 0.5
     """initial environment radiance, spread over the lobes"""
+    envmap_height: int = 32
+    """envmap: rows of the learnable equirectangular grid (columns: twice as many)"""
 
 
 @dataclass

@@ -14,18 +14,17 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from ..fields.cache import RadianceCache
-from ..fields.environment import SGEnvironment
+from ..fields.environment import EnvmapEnvironment, SGEnvironment
 from ..fields.material import MaterialField
 from ..geometry.base import Geometry, Rays, spawn_rays
 from ..render.brdf import Material
 from ..render.estimator import RadianceEstimate, combine, sample_mis_directions
-from ..render.sg import sg_eval
 
 
 class NeFIIModel(nn.Module):
     """Material field M, radiance cache L and SG environment E: everything that is learned."""
 
-    def __init__(self, material: MaterialField, cache: RadianceCache, env: SGEnvironment) -> None:
+    def __init__(self, material: MaterialField, cache: RadianceCache, env: SGEnvironment | EnvmapEnvironment) -> None:
         super().__init__()
         self.material, self.cache, self.env = material, cache, env
 
@@ -76,11 +75,10 @@ def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_sa
                roughness_override: float | None = None, ray_offset: float = 1e-4) -> PathTraced:
     """Eq. 2-4 at ``pts``: the path-traced colour, the material there, and the secondary hits."""
     material = model.material(pts.position, roughness_override=roughness_override)
-    sg = model.env()
-    samples = sample_mis_directions(pts.normal, pts.wo, material.roughness.detach(), sg, num_samples, generator)
+    samples = sample_mis_directions(pts.normal, pts.wo, material.roughness.detach(), model.env.light_sampler(),
+                                    num_samples, generator)
     wi = samples.wi                                                            # (B, S, 3)
-    B, S = wi.shape[:2]
-    L_i = sg_eval(wi, sg)                                                      # E(w) everywhere
+    L_i = model.env.radiance(wi)                                               # E(w) everywhere
     empty = SurfacePoints(*(wi.new_zeros(0, 3) for _ in range(4)))
     if not transport.visibility:
         return PathTraced(combine(samples, material, pts.normal, L_i), material, empty)

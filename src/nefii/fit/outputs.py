@@ -3,7 +3,7 @@
     RUN/config.json        the resolved FitConfig (read back through the same dataclasses)
     RUN/model.pt           fields' weights + config + scene box + data and mesh paths
     RUN/envmap.exr         the recovered SGs as an equirectangular image (docs/design.md mapping)
-    RUN/sg.npy             (K, 7) float32: axis xyz, sharpness, amplitude rgb
+    RUN/sg.npy             (K, 7) float32: axis xyz, sharpness, amplitude rgb (SG light only)
     RUN/checkpoints/       resumable training state (step_XXXXXXX.pt, atomic)
 """
 from __future__ import annotations
@@ -18,7 +18,8 @@ import torch
 from ..errors import InputError
 from ..io.atomic import atomic_path, write_text_atomic
 from ..io.exr import write_exr
-from ..render.sg import SGMixture, sg_to_equirect
+from ..fields.environment import SGEnvironment
+from ..render.sg import SGMixture
 from .build import build_model
 from .config import FitConfig, config_from_dict, config_to_dict
 from .model import NeFIIModel
@@ -63,10 +64,10 @@ def write_outputs(folder: Path, cfg: FitConfig, model: NeFIIModel, box: tuple[to
         torch.save({"config": config_to_dict(cfg), "state": model.state_dict(),
                     "box": [b.cpu() for b in box], "data": str(data), "mesh": str(mesh)}, tmp)
     with torch.no_grad():
-        sg = model.env()
-        write_exr(folder / "envmap.exr", sg_to_equirect(sg, *ENVMAP_SIZE).cpu().numpy())
-        with atomic_path(folder / "sg.npy") as tmp:
-            np.save(tmp, sg_array(sg))
+        write_exr(folder / "envmap.exr", model.env.to_equirect(*ENVMAP_SIZE).cpu().numpy())
+        if isinstance(model.env, SGEnvironment):
+            with atomic_path(folder / "sg.npy") as tmp:
+                np.save(tmp, sg_array(model.env()))
 
 
 def load_run(folder: str | Path, device: torch.device | str = "cpu") -> FittedRun:

@@ -28,7 +28,7 @@ def direction_to_uv(d: Float[Tensor, "*bs 3"]) -> tuple[Float[Tensor, "*bs"], Fl
     x, y, z = d.unbind(-1)
     phi = torch.atan2(y, x)
     u = torch.remainder(0.5 - phi / (2.0 * math.pi), 1.0)
-    v = torch.acos(z.clamp(-1.0, 1.0)) / math.pi
+    v = torch.atan2(torch.hypot(x, y), z) / math.pi  # = acos(z) / pi, precise near the poles
     return u, v
 
 

@@ -28,8 +28,8 @@ from torch import Tensor
 from .brdf import F0_DIELECTRIC, Material, alpha_from_roughness, brdf_eval
 from .frame import Frame, dot, normalize
 from .mis import power_heuristic_over_pdf
-from .samplers import (SG_HEMISPHERE_EPS, pdf_cosine, pdf_ggx_vndf, pdf_sg_mixture, sample_cosine,
-                       sample_ggx_vndf, sample_sg_mixture, sg_selection_probs)
+from .lights import LightSampler, as_light_sampler
+from .samplers import pdf_cosine, pdf_ggx_vndf, sample_cosine, sample_ggx_vndf
 from .sg import SGMixture
 
 IncomingRadiance = Callable[[Float[Tensor, "*bs S 3"]], Float[Tensor, "*bs S 3"]]
@@ -80,31 +80,33 @@ def _uniform(shape: tuple[int, ...], like: Tensor, generator: torch.Generator | 
 
 @torch.no_grad()
 def sample_mis_directions(n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"], roughness: Float[Tensor, " *bs"],
-                          sg: SGMixture, num_samples: int, generator: torch.Generator | None = None,
-                          eps: float = SG_HEMISPHERE_EPS) -> DirectionSamples:
+                          light: SGMixture | LightSampler, num_samples: int,
+                          generator: torch.Generator | None = None) -> DirectionSamples:
     """``num_samples`` estimator samples per point, each one direction per strategy (S = 3N).
 
-    Directions are ordered ``[cosine x N | GGX x N | SG x N]`` along the S axis.
+    Directions are ordered ``[cosine x N | GGX x N | light x N]`` along the S axis. The light
+    strategy is the SG mixture of Eq. 5-6 for an :class:`SGMixture`, or any
+    :class:`~nefii.render.lights.LightSampler` (e.g. an env map's piecewise-constant 2D sampling).
     """
+    light = as_light_sampler(light)
     bs, N = n.shape[:-1], num_samples
     frame = Frame.from_normal(n)
     wo = view_above_surface(n, wo)
     wo_local = frame.to_local(wo).unsqueeze(-2)                   # (*bs, 1, 3)
     alpha = alpha_from_roughness(roughness).unsqueeze(-1)          # (*bs, 1)
-    probs = sg_selection_probs(sg, n, eps).unsqueeze(-2)           # (*bs, 1, K)
     frame_s = frame.unsqueeze(-2)
 
     # ---- one direction from each strategy
     wi_cos = frame_s.to_world(sample_cosine(_uniform((*bs, N, 2), n, generator)))
     wi_ggx = frame_s.to_world(sample_ggx_vndf(wo_local, alpha,
                                               _uniform((*bs, N, 2), n, generator)))
-    wi_sg = sample_sg_mixture(sg, probs, _uniform((*bs, N, 3), n, generator))
-    wi = normalize(torch.cat([wi_cos, wi_ggx, wi_sg], -2))        # (*bs, 3N, 3)
+    wi_light = light.sample(n, _uniform((*bs, N, 3), n, generator))
+    wi = normalize(torch.cat([wi_cos, wi_ggx, wi_light], -2))     # (*bs, 3N, 3)
 
     # ---- every strategy's density at every direction
     wi_local = frame_s.to_local(wi)
     p_all = torch.stack([pdf_cosine(wi_local), pdf_ggx_vndf(wo_local, wi_local, alpha),
-                         pdf_sg_mixture(sg, probs, wi)], -1)      # (*bs, 3N, 3)
+                         light.pdf(n, wi)], -1)                   # (*bs, 3N, 3)
     own = torch.arange(3, device=n.device).repeat_interleave(N)   # strategy of each direction
     p_own = p_all.gather(-1, own.expand(*bs, 3 * N).unsqueeze(-1)).squeeze(-1)
 
@@ -124,9 +126,9 @@ def combine(samples: DirectionSamples, material: Material, n: Float[Tensor, "*bs
     return RadianceEstimate(diffuse=(f.diffuse * L_i * c).sum(-2), specular=(f.specular * L_i * c).sum(-2))
 
 
-def estimate_Lo(n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"], material: Material, sg: SGMixture,
-                incoming: IncomingRadiance, num_samples: int, generator: torch.Generator | None = None,
-                f0: float | Tensor = F0_DIELECTRIC) -> RadianceEstimate:
-    """Eq. 2 by MIS of cosine, GGX-VNDF and SG sampling, for incoming radiance ``incoming(wi)``."""
-    samples = sample_mis_directions(n, wo, material.roughness.detach(), sg, num_samples, generator)
+def estimate_Lo(n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"], material: Material,
+                light: SGMixture | LightSampler, incoming: IncomingRadiance, num_samples: int,
+                generator: torch.Generator | None = None, f0: float | Tensor = F0_DIELECTRIC) -> RadianceEstimate:
+    """Eq. 2 by MIS of cosine, GGX-VNDF and light sampling, for incoming radiance ``incoming(wi)``."""
+    samples = sample_mis_directions(n, wo, material.roughness.detach(), light, num_samples, generator)
     return combine(samples, material, n, incoming(samples.wi), f0)

@@ -1,0 +1,98 @@
+"""Equirectangular environment maps as light: radiance lookup and piecewise-constant 2D
+importance sampling (PBRT's ``Distribution2D``) in the mapping of :mod:`nefii.render.equirect`.
+
+The density is proportional to luminance times ``sin(theta)`` of each pixel's centre row (the
+pixel's solid angle), with a small floor so every direction can be sampled. Within a pixel,
+``(u, v)`` is uniform, so the density over solid angle is exactly
+``p(w) = p_uv(u, v) / (2 pi^2 sin(theta))``: the one this sampler draws from.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from .equirect import direction_to_uv, uv_to_direction
+
+LUMINANCE = (0.2126, 0.7152, 0.0722)
+
+
+def envmap_lookup(image: Float[Tensor, "H W 3"], w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
+    """Radiance of the pixel each direction falls in (piecewise constant, differentiable in ``image``)."""
+    H, W = image.shape[:2]
+    u, v = direction_to_uv(w)
+    col = (u * W).long().clamp(0, W - 1)
+    row = (v * H).long().clamp(0, H - 1)
+    return image.reshape(-1, 3)[row * W + col]
+
+
+@dataclass(frozen=True)
+class EnvmapDistribution:
+    """Sampling tables of one map (no gradient)."""
+
+    row_cdf: Float[Tensor, " Hp1"]
+    """(H+1,) marginal CDF over rows, from 0 to 1"""
+    col_cdf: Float[Tensor, "H Wp1"]
+    """(H, W+1) conditional CDFs over columns of each row"""
+    p_uv: Float[Tensor, "H W"]
+    """density over the unit square (u, v) of each pixel"""
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.p_uv.shape[0], self.p_uv.shape[1]
+
+
+def _cdf(f: Tensor) -> Tensor:
+    c = torch.cumsum(f, -1)
+    c = c / c[..., -1:].clamp_min(1e-30)
+    return torch.cat([torch.zeros_like(c[..., :1]), c], -1)
+
+
+@torch.no_grad()
+def build_envmap_distribution(image: Float[Tensor, "H W 3"], floor: float = 1e-3) -> EnvmapDistribution:
+    """Tables for sampling ``image``; ``floor`` (relative to the mean luminance) keeps dark pixels reachable."""
+    H, W = image.shape[:2]
+    lum = (image.clamp_min(0) * torch.tensor(LUMINANCE, dtype=image.dtype, device=image.device)).sum(-1)
+    lum = lum + floor * lum.mean().clamp_min(1e-12)
+    theta = (torch.arange(H, dtype=image.dtype, device=image.device) + 0.5) * (math.pi / H)
+    f = lum * torch.sin(theta).unsqueeze(-1)                                   # (H, W)
+    row_sum = f.sum(-1)
+    total = row_sum.sum()
+    p_uv = f / total * (H * W)
+    return EnvmapDistribution(row_cdf=_cdf(row_sum), col_cdf=_cdf(f), p_uv=p_uv)
+
+
+def _sample_cdf(cdf: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    """Bin index and continuous offset in [0, 1) within it, for CDFs ``(..., n+1)``."""
+    n = cdf.shape[-1] - 1
+    idx = (torch.searchsorted(cdf, u.unsqueeze(-1).contiguous(), right=True).squeeze(-1) - 1).clamp(0, n - 1)
+    lo = cdf.gather(-1, idx.unsqueeze(-1)).squeeze(-1)
+    hi = cdf.gather(-1, (idx + 1).unsqueeze(-1)).squeeze(-1)
+    off = ((u - lo) / (hi - lo).clamp_min(1e-30)).clamp(0.0, 1.0 - 1e-7)
+    return idx, off
+
+
+def sample_envmap(dist: EnvmapDistribution, u: Float[Tensor, "*bs 2"]) -> Float[Tensor, "*bs 3"]:
+    """A direction with density :func:`pdf_envmap` from uniform ``u``."""
+    H, W = dist.shape
+    bs = u.shape[:-1]
+    u = u.reshape(-1, 2)
+    row, off_v = _sample_cdf(dist.row_cdf.expand(len(u), -1).contiguous(), u[:, 0])
+    col, off_u = _sample_cdf(dist.col_cdf[row], u[:, 1])
+    uu = (col.to(u.dtype) + off_u) / W
+    vv = (row.to(u.dtype) + off_v) / H
+    return uv_to_direction(uu, vv).reshape(*bs, 3)
+
+
+def pdf_envmap(dist: EnvmapDistribution, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs"]:
+    """Density over solid angle: ``p_uv / (2 pi^2 sin(theta))`` (0 at the poles' singular points)."""
+    H, W = dist.shape
+    u, v = direction_to_uv(w)
+    col = (u * W).long().clamp(0, W - 1)
+    row = (v * H).long().clamp(0, H - 1)
+    sin_t = torch.hypot(w[..., 0], w[..., 1]) / w.norm(dim=-1)
+    p = dist.p_uv[row, col] / (2.0 * math.pi**2 * sin_t.clamp_min(1e-12))
+    return torch.where(sin_t > 0, p, torch.zeros_like(p))

@@ -1,0 +1,53 @@
+"""Light-sampling strategies for the estimator: one protocol, an SG mixture and an env map behind it.
+
+A strategy draws directions at shading points with normal ``n`` and reports the density of
+any direction over solid angle; ``n`` may shape the distribution (the SG lobe choice of Eq. 6).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+from jaxtyping import Float
+from torch import Tensor
+
+from .envmap import EnvmapDistribution, pdf_envmap, sample_envmap
+from .samplers import SG_HEMISPHERE_EPS, pdf_sg_mixture, sample_sg_mixture, sg_selection_probs
+from .sg import SGMixture
+
+
+class LightSampler(Protocol):
+    def sample(self, n: Float[Tensor, "*bs 3"], u: Float[Tensor, "*bs N 3"]) -> Float[Tensor, "*bs N 3"]: ...
+
+    def pdf(self, n: Float[Tensor, "*bs 3"], wi: Float[Tensor, "*bs S 3"]) -> Float[Tensor, "*bs S"]: ...
+
+
+@dataclass(frozen=True)
+class SGLightSampler:
+    """Eq. 5-6: a lobe by energy times ``max(n . xi, eps)``, then the lobe exactly."""
+
+    sg: SGMixture
+    eps: float = SG_HEMISPHERE_EPS
+
+    def sample(self, n: Tensor, u: Tensor) -> Tensor:
+        return sample_sg_mixture(self.sg, sg_selection_probs(self.sg, n, self.eps).unsqueeze(-2), u)
+
+    def pdf(self, n: Tensor, wi: Tensor) -> Tensor:
+        return pdf_sg_mixture(self.sg, sg_selection_probs(self.sg, n, self.eps).unsqueeze(-2), wi)
+
+
+@dataclass(frozen=True)
+class EnvmapLightSampler:
+    """Piecewise-constant 2D sampling of an equirectangular map (the same for every ``n``)."""
+
+    dist: EnvmapDistribution
+
+    def sample(self, n: Tensor, u: Tensor) -> Tensor:
+        return sample_envmap(self.dist, u[..., :2])
+
+    def pdf(self, n: Tensor, wi: Tensor) -> Tensor:
+        return pdf_envmap(self.dist, wi)
+
+
+def as_light_sampler(light: SGMixture | LightSampler) -> LightSampler:
+    return SGLightSampler(light) if isinstance(light, SGMixture) else light
