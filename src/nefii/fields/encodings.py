@@ -34,6 +34,23 @@ class FourierFeatures(nn.Module):
 _PRIMES = (1, 2654435761, 805459861)
 
 
+class _Gather(torch.autograd.Function):
+    """``table[idx]`` whose backward is one ``index_add_`` (faster on CPU than embedding's backward)."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, idx: Tensor) -> Tensor:
+        ctx.save_for_backward(idx)
+        ctx.table_shape = table.shape
+        return table.index_select(0, idx.reshape(-1)).view(*idx.shape, table.shape[-1])
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        (idx,) = ctx.saved_tensors
+        g = grad.new_zeros(ctx.table_shape)
+        g.index_add_(0, idx.reshape(-1), grad.reshape(-1, ctx.table_shape[-1]))
+        return g, None
+
+
 class HashGrid(nn.Module):
     """Multiresolution hash encoding of points in ``[0, 1]^3``.
 
@@ -48,7 +65,7 @@ class HashGrid(nn.Module):
         self.num_levels, self.features_per_level = num_levels, features_per_level
         self.table_size = 2**log2_table_size
         growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(num_levels - 1, 1))
-        res = [int(math.floor(base_resolution * growth**level)) for level in range(num_levels)]
+        res = [int(math.floor(base_resolution * growth**level + 1e-6)) for level in range(num_levels)]
         dense = [(r + 1) ** 3 <= self.table_size for r in res]
         sizes = [(r + 1) ** 3 if d else self.table_size for r, d in zip(res, dense)]
         offsets = [0]
@@ -79,7 +96,7 @@ class HashGrid(nn.Module):
         hashed = (c[..., 0] * _PRIMES[0]) ^ (c[..., 1] * _PRIMES[1]) ^ (c[..., 2] * _PRIMES[2])
         idx = torch.where(self.dense.view(1, -1, 1), dense_idx, hashed) % self.level_size.view(1, -1, 1)
         idx = idx + self.offset.view(1, -1, 1)                                   # (N, L, 8)
-        f = nn.functional.embedding(idx, self.table)                             # (N, L, 8, F)
+        f = _Gather.apply(self.table, idx)                                       # (N, L, 8, F)
         cw = self.corners.view(1, 1, 8, 3).to(x.dtype)
         w = (cw * frac.unsqueeze(2) + (1 - cw) * (1 - frac.unsqueeze(2))).prod(-1)  # (N, L, 8)
         out = (f * w.unsqueeze(-1)).sum(2)                                       # (N, L, F)

@@ -78,24 +78,23 @@ def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_sa
     samples = sample_mis_directions(pts.normal, pts.wo, material.roughness.detach(), model.env.light_sampler(),
                                     num_samples, generator)
     wi = samples.wi                                                            # (B, S, 3)
-    L_i = model.env.radiance(wi)                                               # E(w) everywhere
+    # only directions that carry weight are traced and lit
+    b_idx, s_idx = (samples.weight > 0).nonzero(as_tuple=True)
+    w_live = wi[b_idx, s_idx]
     empty = SurfacePoints(*(wi.new_zeros(0, 3) for _ in range(4)))
     if not transport.visibility:
+        L_i = wi.new_zeros(wi.shape).index_put((b_idx, s_idx), model.env.radiance(w_live))
         return PathTraced(combine(samples, material, pts.normal, L_i), material, empty)
 
-    # ---- secondary rays: only directions that carry weight are traced
-    live = samples.weight > 0
-    b_idx, s_idx = live.nonzero(as_tuple=True)
-    rays = spawn_rays(pts.position[b_idx], pts.geometric_normal[b_idx], wi[b_idx, s_idx],
-                      ray_offset * geometry.scale)
+    # ---- secondary rays
+    rays = spawn_rays(pts.position[b_idx], pts.geometric_normal[b_idx], w_live, ray_offset * geometry.scale)
     hit = geometry.intersect(Rays(rays.origins, rays.directions))
-    hb, hs = b_idx[hit.valid], s_idx[hit.valid]
     secondary = SurfacePoints(hit.position[hit.valid], hit.normal[hit.valid],
-                              hit.geometric_normal[hit.valid], -wi[hb, hs])
+                              hit.geometric_normal[hit.valid], -w_live[hit.valid])
     # ---- incoming light: V E(w) + (1 - V) L(x', n', -w)
+    miss = ~hit.valid
+    L_i = wi.new_zeros(wi.shape).index_put((b_idx[miss], s_idx[miss]), model.env.radiance(w_live[miss]))
     if transport.indirect and len(secondary):
         L_hit = model.cache(secondary.position, secondary.normal, secondary.wo)
-    else:
-        L_hit = L_i.new_zeros(len(secondary), 3)
-    L_i = L_i.index_put((hb, hs), L_hit)
+        L_i = L_i.index_put((b_idx[hit.valid], s_idx[hit.valid]), L_hit)
     return PathTraced(combine(samples, material, pts.normal, L_i), material, secondary)

@@ -54,9 +54,11 @@ def sample_ggx_vndf_half(wo: Float[Tensor, "*bs 3"], alpha: Float[Tensor, "*bs"]
     a = alpha.expand(bs).unsqueeze(-1)
     vh = normalize(torch.cat([a * wo[..., :2], wo[..., 2:]], -1))
     lensq = vh[..., 0] ** 2 + vh[..., 1] ** 2
-    inv_len = torch.where(lensq > 0, lensq.clamp_min(1e-30).rsqrt(), torch.zeros_like(lensq))
+    # T1 = (-vh.y, vh.x, 0) / |.| only where that normalises (lensq above the clamp); else vh ~ +z, any T1 is fine
+    tilted = lensq > 1e-30
+    inv_len = torch.where(tilted, lensq.clamp_min(1e-30).rsqrt(), torch.zeros_like(lensq))
     zero = torch.zeros_like(lensq)
-    t1 = torch.where((lensq > 0).unsqueeze(-1),
+    t1 = torch.where(tilted.unsqueeze(-1),
                      torch.stack([-vh[..., 1] * inv_len, vh[..., 0] * inv_len, zero], -1),
                      torch.stack([torch.ones_like(lensq), zero, zero], -1))
     t2 = torch.linalg.cross(vh, t1)
@@ -138,4 +140,5 @@ def sample_sg_mixture(sg: SGMixture, probs: Float[Tensor, "*bs K"],
 def pdf_sg_mixture(sg: SGMixture, probs: Float[Tensor, "*bs K"],
                    w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs"]:
     """Eq. 5: ``sum_k a_k lambda_k / (2 pi (1 - e^{-2 lambda_k})) e^{lambda_k (w.xi_k - 1)}``."""
-    return (probs * sg_lobes(w, sg) / sg_integral(sg.sharpness)).sum(-1)
+    weights = probs / sg_integral(sg.sharpness)                   # small: (*bs, 1, K) in the estimator
+    return (sg_lobes(w, sg) * weights).sum(-1)

@@ -40,9 +40,11 @@ class SGMixture:
 
 
 def sg_lobes(w: Float[Tensor, "*bs 3"], sg: SGMixture) -> Float[Tensor, "*bs K"]:
-    """Unit-amplitude lobe values ``exp(lambda_k (w . xi_k - 1))`` for every lobe."""
-    cos = w @ sg.axis.T
-    return torch.exp(sg.sharpness * (cos - 1.0))
+    """Unit-amplitude lobe values ``exp(lambda_k (w . xi_k - 1))`` for every lobe.
+
+    Computed as ``exp(w . (lambda_k xi_k) - lambda_k)``: one matrix product and one exp pass.
+    """
+    return torch.exp(w @ (sg.axis * sg.sharpness.unsqueeze(-1)).T - sg.sharpness)
 
 
 def sg_eval(w: Float[Tensor, "*bs 3"], sg: SGMixture) -> Float[Tensor, "*bs 3"]:

@@ -1,0 +1,42 @@
+"""Shared by the benchmark scripts: machine facts, scene caching, results tables."""
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parent
+CACHE = ROOT / ".cache"
+RESULTS = ROOT / "results"
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    cores = len(os.sched_getaffinity(0))
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return f"{cpu}, {cores} cores, {gpu}; Python {platform.python_version()}, torch {torch.__version__}"
+
+
+def scene(name: str, res: int = 128, views: int = 64, test_views: int = 8, spp: int = 64) -> Path:
+    """A built-in scene, synthesised once into ``benchmarks/.cache`` (Mitsuba needed the first time)."""
+    out = CACHE / f"{name}_{res}_{views}_{test_views}_{spp}"
+    if not (out / "transforms_train.json").exists():
+        subprocess.run([sys.executable, "-m", "nefii.cli.main", "synth", name, "--out", str(out), "--res", str(res),
+                        "--views", str(views), "--test-views", str(test_views), "--spp", str(spp)], check=True)
+    return out
+
+
+def stamp() -> str:
+    return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())

@@ -1,0 +1,104 @@
+"""Speed and memory of the ``cpu`` preset's training step, beside the raw Embree ray-cast rate.
+
+    python benchmarks/fit_speed.py [--data DIR] [--steps 200] [--preset cpu]
+
+Prints the figures and writes ``benchmarks/results/fit_speed.md``. Without ``--data`` it uses
+the smallest built-in scene at 128x128 with 64 training views (synthesised once, cached).
+"""
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS, machine, scene, stamp  # noqa: E402
+
+from nefii.cli.common import set_threads  # noqa: E402
+from nefii.data import load_scene  # noqa: E402
+from nefii.fit.build import build_model  # noqa: E402
+from nefii.fit.config import resolve_config  # noqa: E402
+from nefii.fit.pixels import first_hits  # noqa: E402
+from nefii.fit.trainer import Trainer  # noqa: E402
+from nefii.geometry import MeshGeometry, Rays  # noqa: E402
+from nefii.render.frame import normalize  # noqa: E402
+from nefii.synth import smallest_scene  # noqa: E402
+
+
+def embree_rate(geometry: MeshGeometry, n: int = 1_000_000, repeats: int = 3) -> tuple[float, float]:
+    """Closest-hit and any-hit rays per second for random rays through the scene's bounding sphere."""
+    g = torch.Generator().manual_seed(0)
+    lo, hi = (torch.from_numpy(b.copy()) for b in geometry.bounds)
+    c, r = 0.5 * (lo + hi), 0.5 * (hi - lo).norm()
+    o = c + normalize(torch.randn(n, 3, generator=g)) * r * 1.5
+    d = normalize(c + torch.randn(n, 3, generator=g) * r * 0.5 - o)
+    rays = Rays(o, d)
+    best_i, best_o = 0.0, 0.0
+    for _ in range(repeats):
+        t = time.perf_counter()
+        geometry.intersect(rays)
+        best_i = max(best_i, n / (time.perf_counter() - t))
+        t = time.perf_counter()
+        geometry.occluded(rays)
+        best_o = max(best_o, n / (time.perf_counter() - t))
+    return best_i, best_o
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--data", type=Path, default=None)
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--preset", default="cpu")
+    args = ap.parse_args()
+    data = args.data or scene(smallest_scene())
+    cfg = resolve_config(args.preset, [])
+    threads = set_threads(cfg.threads)
+    sc = load_scene(data, "train")
+    geometry = MeshGeometry.from_file(sc.mesh_path)
+    t0 = time.perf_counter()
+    pixels = first_hits(sc, geometry)
+    t_first = time.perf_counter() - t0
+    box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
+    trainer = Trainer(cfg, build_model(cfg, box), geometry, pixels, torch.device("cpu"))
+    for _ in range(10):  # warm up (allocator, first unobserved step)
+        trainer.train_step()
+    rays = 0
+    t0 = time.perf_counter()
+    for _ in range(args.steps):
+        rec = trainer.train_step()
+        rays += 3 * cfg.num_samples * (cfg.batch_pixels if rec.kind == "observed" else cfg.unobserved_points)
+    dt = time.perf_counter() - t0
+    peak_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    closest, anyhit = embree_rate(geometry)
+    steps_s = args.steps / dt
+    rays_s = rays / dt
+    rows = [
+        ("scene", f"{data.name}: {len(sc)} views {sc.width}x{sc.height}, {len(pixels.points)} object pixels, "
+                  f"{len(geometry.faces)} triangles"),
+        ("preset", f"{args.preset}: {cfg.batch_pixels} px/step, N={cfg.num_samples} (x3 directions)"),
+        ("threads", str(threads)),
+        ("first hits of all training pixels", f"{t_first:.2f} s"),
+        ("steps/s", f"{steps_s:.2f}"),
+        ("time per step", f"{1000 / steps_s:.1f} ms"),
+        ("direction samples/s (secondary rays + their shading)", f"{rays_s / 1e6:.3f} M"),
+        ("Embree closest-hit rays/s (same machine, same mesh)", f"{closest / 1e6:.2f} M"),
+        ("Embree any-hit rays/s", f"{anyhit / 1e6:.2f} M"),
+        ("training samples/s over Embree closest-hit rate", f"{rays_s / closest:.3f}"),
+        (f"steps in 15 min at this rate", f"{steps_s * 900:.0f} (preset runs {cfg.steps})"),
+        ("peak resident memory", f"{peak_gib:.2f} GiB"),
+    ]
+    for k, v in rows:
+        print(f"{k:55s} {v}")
+    RESULTS.mkdir(exist_ok=True)
+    md = [f"# fit_speed ({stamp()})", "", f"Machine: {machine()}", "", "| figure | value |", "|---|---|"]
+    md += [f"| {k} | {v} |" for k, v in rows]
+    (RESULTS / "fit_speed.md").write_text("\n".join(md) + "\n")
+    print(f"wrote {RESULTS / 'fit_speed.md'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,91 @@
+"""Fields: hash-grid encoding (gradients, interpolation), activations, SG environment initialisation."""
+import math
+
+import pytest
+import torch
+from torch.func import functional_call
+
+from nefii.fields.encodings import FourierFeatures, HashGrid
+from nefii.fields.environment import EnvmapEnvironment, SGEnvironment
+from nefii.fields.material import MaterialField
+from nefii.render.equirect import pixel_directions, pixel_solid_angles
+
+
+def test_hashgrid_gradient_matches_finite_differences():
+    torch.manual_seed(0)
+    h = HashGrid(num_levels=4, features_per_level=2, log2_table_size=8, base_resolution=3, max_resolution=40,
+                 init_scale=1.0).double()
+    x = torch.rand(30, 3, dtype=torch.float64)
+    table = h.table.detach().clone().requires_grad_()
+    f = lambda t: functional_call(h, {"table": t}, (x,))
+    assert torch.autograd.gradcheck(f, (table,))
+
+
+def test_hashgrid_is_continuous_and_exact_on_dense_vertices():
+    torch.manual_seed(1)
+    h = HashGrid(num_levels=1, features_per_level=2, log2_table_size=12, base_resolution=8, max_resolution=8,
+                 init_scale=1.0)
+    assert bool(h.dense[0])
+    # a grid vertex returns its own table entry
+    ijk = torch.tensor([[3, 5, 2]])
+    out = h(ijk.float() / 8.0)
+    idx = 3 + 9 * (5 + 9 * 2)
+    assert torch.allclose(out[0], h.table[idx], atol=1e-6)
+    # trilinear interpolation is continuous across cell faces
+    x = torch.rand(500, 3) * 0.9 + 0.05
+    x[:, 0] = (torch.randint(1, 7, (500,)).float()) / 8.0
+    e = torch.tensor([1e-5, 0.0, 0.0])
+    assert (h(x + e) - h(x - e)).abs().max() < 1e-3
+
+
+def test_hashgrid_levels_have_the_asked_resolutions():
+    h = HashGrid(num_levels=6, features_per_level=2, log2_table_size=14, base_resolution=4, max_resolution=128)
+    assert int(h.resolution[0]) == 4 and int(h.resolution[-1]) == 128
+    assert h.out_dim == 12 and h(torch.rand(5, 3)).shape == (5, 12)
+    # the coarse levels are dense, the fine ones hashed
+    assert bool(h.dense[0]) and not bool(h.dense[-1])
+
+
+def test_fourier_features():
+    f = FourierFeatures(3, 4)
+    x = torch.rand(7, 3)
+    y = f(x)
+    assert y.shape == (7, f.out_dim) == (7, 27)
+    assert torch.allclose(y[:, :3], x)
+    assert torch.allclose(y[:, 3:15], torch.sin((x.unsqueeze(-1) * f.freqs).flatten(-2)))
+
+
+def test_material_field_ranges_and_override():
+    torch.manual_seed(2)
+    box = (torch.zeros(3), torch.ones(3))
+    m = MaterialField(HashGrid(4, 2, 10, 4, 32, init_scale=3.0), 16, 1, box)
+    mat = m(torch.rand(1000, 3) * 3 - 1)  # outside the box too
+    assert mat.albedo.min() > 0 and mat.albedo.max() < 1
+    assert mat.roughness.min() >= 0.089 - 1e-6 and mat.roughness.max() <= 1.0 + 1e-6
+    fixed = m(torch.rand(10, 3), roughness_override=0.5)
+    assert torch.all(fixed.roughness == 0.5)
+
+
+@pytest.mark.parametrize("lobes", [16, 128])
+def test_sg_environment_starts_near_a_constant_radiance(lobes):
+    env = SGEnvironment(num_lobes=lobes, sharpness_min=5.0, sharpness_max=3000.0, init_radiance=0.5)
+    with torch.no_grad():
+        sg = env()
+    assert torch.allclose(sg.axis.norm(dim=-1), torch.ones(lobes))
+    assert sg.sharpness.min().item() == pytest.approx(5.0, rel=1e-4) and sg.sharpness.max().item() == pytest.approx(3000.0, rel=1e-4)
+    # its mean radiance over the sphere (quadrature) is the asked one
+    d = pixel_directions(512, 1024, dtype=torch.float64)
+    w = pixel_solid_angles(512, 1024, dtype=torch.float64)
+    with torch.no_grad():
+        img = env.double().radiance(d)
+    mean = (img * w.unsqueeze(-1)).sum((0, 1)) / (4 * math.pi)
+    assert torch.allclose(mean, torch.full((3,), 0.5, dtype=torch.float64), rtol=0.03)
+
+
+def test_envmap_environment_lookup():
+    env = EnvmapEnvironment(8, 16, init_radiance=0.25)
+    with torch.no_grad():
+        env.log_radiance[0, 4] = math.log(7.0)  # a pixel of the top row
+    d = pixel_directions(8, 16)[0, 4]
+    assert env.radiance(d.unsqueeze(0))[0].tolist() == pytest.approx([7.0] * 3)
+    assert env.to_equirect(8, 16)[0, 4].tolist() == pytest.approx([7.0] * 3)
