@@ -10,6 +10,7 @@ from ..data import load_scene
 from ..errors import InputError
 from ..fit.build import build_model
 from ..fit.config import PRESETS, FitConfig, resolve_config
+from ..fit.light_init import estimate_light, set_sg_parameters, sg_from_light
 from ..fit.logging import RunLogger
 from ..fit.outputs import read_config, write_config, write_outputs
 from ..fit.pixels import first_hits
@@ -64,6 +65,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"nefii fit: {len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels")
 
     model = build_model(cfg, box)
+    if not args.resume and cfg.light.kind == "sg" and cfg.light.init == "shading":
+        pts = pixels.points
+        est = estimate_light(pts.position, pts.normal, pts.geometric_normal, pixels.rgb, geometry,
+                             generator=torch.Generator().manual_seed(cfg.seed), ray_offset=cfg.ray_offset)
+        init = sg_from_light(est, cfg.light.num_lobes, sharp=cfg.light.sharpness_init_peak)
+        set_sg_parameters(model.env, init)
+        n_sharp = int((init.sharpness == cfg.light.sharpness_init_peak).sum())
+        print(f"nefii fit: lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
     trainer = Trainer(cfg, model, geometry, pixels, device)
     ckpt_dir = out / "checkpoints"
     if args.resume:

@@ -50,6 +50,11 @@ class LightConfig:
     """initial sharpness of the sharpest lobes (a 1-degree sun needs thousands)"""
     init_radiance: float = 0.5
     """initial environment radiance, spread over the lobes"""
+    init: str = "shading"
+    """SG start: ``shading`` (non-negative least squares of the pixels' diffuse shading and shadows over
+    1024 directions, see nefii.fit.light_init) or ``uniform`` (Fibonacci axes, constant radiance)"""
+    sharpness_init_peak: float = 800.0
+    """shading init: sharpness of the lobes put on bright directions (a sun)"""
     envmap_height: int = 32
     """envmap: rows of the learnable equirectangular grid (columns: twice as many)"""
 
