@@ -133,3 +133,43 @@ def test_secondary_buffer_is_a_ring():
     assert len(buf) == 5
     vals = set(buf.sample(200, torch.Generator().manual_seed(0)).position[:, 0].tolist())
     assert vals == {2.0, 3.0, 4.0, 5.0, 6.0}
+
+
+def test_data_parallel_over_two_cpu_processes(tiny_scene, tmp_path):
+    run = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                           "29517", "-m", "nefii.cli.main", "fit", str(tiny_scene), "--out", str(run), "--preset",
+                           "tiny", "--quiet", "--set", "threads=1"], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "2 processes" in proc.stdout
+    assert "the 2 process replicas are in sync" in proc.stdout
+    assert (run / "model.pt").is_file() and (run / "sg.npy").is_file()
+    # one writer: a single header line in the log
+    assert (run / "log.csv").read_text().count("step,kind") == 1
+
+
+def test_a_non_finite_loss_is_reported_and_never_saved(tiny_scene, tmp_path, monkeypatch, capsys):
+    import nefii.fit.trainer as trainer_mod
+
+    real = trainer_mod.observed_loss
+    calls = {"n": 0}
+
+    def poisoned(*args, **kwargs):
+        terms, traced = real(*args, **kwargs)
+        calls["n"] += 1
+        if calls["n"] == 4:
+            terms = type(terms)(terms.total * float("nan"), terms.render, terms.cache, terms.background)
+        return terms, traced
+
+    monkeypatch.setattr(trainer_mod, "observed_loss", poisoned)
+    run = tmp_path / "nan"
+    rc = main(["fit", str(tiny_scene), "--out", str(run), "--preset", "tiny", "--quiet",
+               "--set", "checkpoint_every_s=0"])
+    assert rc == 1
+    assert "not finite" in capsys.readouterr().out
+    assert not (run / "model.pt").exists()
+    # the checkpoints are those of the good steps before it
+    steps = sorted(int(p.stem.split("_")[1]) for p in (run / "checkpoints").glob("step_*.pt"))
+    assert steps and max(steps) <= 4

@@ -10,6 +10,7 @@ from ..data import load_scene
 from ..errors import InputError
 from ..fit.build import build_model
 from ..fit.config import PRESETS, FitConfig, resolve_config
+from ..fit.distributed import DistContext, init_distributed, local_device, parameter_checksums, shutdown
 from ..fit.light_init import estimate_light, set_sg_parameters, sg_from_light
 from ..fit.logging import RunLogger
 from ..fit.outputs import read_config, write_config, write_outputs
@@ -51,18 +52,29 @@ def run(args: argparse.Namespace) -> int:
     if not args.resume and (out / "checkpoints").exists():
         raise InputError(out, "already holds a run: use --resume to continue it, or another --out")
     cfg = fit_config(args)
-    device = pick_device(args.device)
+    ctx = init_distributed(pick_device(args.device))
+    try:
+        return _fit(args, cfg, ctx)
+    finally:
+        shutdown(ctx)
+
+
+def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
+    out: Path = args.out
+    device = local_device(pick_device(args.device), ctx)
     threads = set_threads(cfg.threads)
+    say = print if ctx.is_main else (lambda *a, **k: None)
     scene = load_scene(args.data, "train")
     mesh_path = args.mesh or scene.mesh_path
     if mesh_path is None:
         raise InputError(args.data, "no geometry: the dataset has no mesh.ply; pass --mesh PATH")
     geometry = MeshGeometry.from_file(mesh_path)
     box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
-    print(f"nefii fit: {len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
-          f"mesh {mesh_path} ({len(geometry.faces)} triangles); device {device}, {threads} threads")
+    say(f"nefii fit: {len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
+        f"mesh {mesh_path} ({len(geometry.faces)} triangles); device {device}, {threads} threads"
+        + (f", {ctx.world_size} processes" if ctx.active else ""))
     pixels = first_hits(scene, geometry).to(device)
-    print(f"nefii fit: {len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels")
+    say(f"nefii fit: {len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels")
 
     model = build_model(cfg, box)
     if not args.resume and cfg.light.kind == "sg" and cfg.light.init == "shading":
@@ -72,27 +84,37 @@ def run(args: argparse.Namespace) -> int:
         init = sg_from_light(est, cfg.light.num_lobes, sharp=cfg.light.sharpness_init_peak)
         set_sg_parameters(model.env, init)
         n_sharp = int((init.sharpness == cfg.light.sharpness_init_peak).sum())
-        print(f"nefii fit: lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
-    trainer = Trainer(cfg, model, geometry, pixels, device)
+        say(f"nefii fit: lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
+    trainer = Trainer(cfg, model, geometry, pixels, device, ctx)
     ckpt_dir = out / "checkpoints"
     if args.resume:
         last = Trainer.latest_checkpoint(ckpt_dir)
         if last is None:
             raise InputError(ckpt_dir, "no checkpoint to resume from")
         trainer.load_state_dict(torch.load(last, map_location=device, weights_only=False))
-        print(f"nefii fit: resumed from {last} at step {trainer.step}")
-    out.mkdir(parents=True, exist_ok=True)
-    ckpt_dir.mkdir(exist_ok=True)
-    write_config(out, cfg)
-    logger = RunLogger(out, cfg)
+        say(f"nefii fit: resumed from {last} at step {trainer.step}")
+    logger = None
+    if ctx.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+        ckpt_dir.mkdir(exist_ok=True)
+        write_config(out, cfg)
+        logger = RunLogger(out, cfg)
     try:
         trainer.fit(ckpt_dir, log=logger, progress=not args.quiet)
     except NonFiniteLoss as e:
-        print(f"nefii fit: error: {e}; the last good checkpoint is in {ckpt_dir}")
+        say(f"nefii fit: error: {e}; the last good checkpoint is in {ckpt_dir}")
         return 1
     finally:
-        logger.close()
-    write_outputs(out, cfg, trainer.model, box, Path(args.data).resolve(), Path(mesh_path).resolve())
-    written = [n for n in ("model.pt", "envmap.exr", "sg.npy", "config.json") if (out / n).exists()]
-    print(f"nefii fit: done, {trainer.step} steps; wrote {', '.join(written)} in {out}")
+        if logger is not None:
+            logger.close()
+    if ctx.active:
+        sums = parameter_checksums(trainer.model, ctx, device)
+        if max(sums) - min(sums) > 1e-6 * max(1.0, abs(sums[0])):
+            say(f"nefii fit: error: the {ctx.world_size} replicas diverged (parameter sums {sums})")
+            return 1
+        say(f"nefii fit: the {ctx.world_size} process replicas are in sync (parameter sum {sums[0]:.6g})")
+    if ctx.is_main:
+        write_outputs(out, cfg, trainer.model, box, Path(args.data).resolve(), Path(mesh_path).resolve())
+        written = [n for n in ("model.pt", "envmap.exr", "sg.npy", "config.json") if (out / n).exists()]
+        say(f"nefii fit: done, {trainer.step} steps; wrote {', '.join(written)} in {out}")
     return 0

@@ -17,6 +17,7 @@ from tqdm import tqdm
 from ..geometry.base import Geometry
 from ..io.atomic import atomic_path
 from .config import FitConfig, config_to_dict
+from .distributed import DistContext, any_rank, average_gradients
 from .losses import LossTerms, ObservedBatch, SecondaryHitBuffer, observed_loss, unobserved_loss
 from .model import NeFIIModel, Transport
 from .pixels import TrainingPixels
@@ -37,15 +38,17 @@ class StepLog:
 
 class Trainer:
     def __init__(self, cfg: FitConfig, model: NeFIIModel, geometry: Geometry, pixels: TrainingPixels,
-                 device: torch.device) -> None:
+                 device: torch.device, dist: DistContext = DistContext()) -> None:
         self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
+        self.dist = dist
+        self.params = list(self.model.parameters())
         env_params = list(model.env.parameters())
         env_ids = {id(p) for p in env_params}
         nets = [p for p in model.parameters() if id(p) not in env_ids]
         self.optimizer = torch.optim.Adam([{"params": nets, "lr": cfg.lr}, {"params": env_params, "lr": cfg.lr_light}])
         gamma = cfg.lr_decay ** (1.0 / max(cfg.steps, 1))
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma)
-        self.generator = torch.Generator(device=device).manual_seed(cfg.seed)
+        self.generator = torch.Generator(device=device).manual_seed(cfg.seed + 1000 * dist.rank)
         self.buffer = SecondaryHitBuffer(cfg.secondary_buffer)
         self.warmup = RoughnessWarmup(int(round(cfg.roughness_warmup * cfg.steps)))
         self.alternation = Alternation(cfg.unobserved_every, cfg.unobserved)
@@ -73,10 +76,11 @@ class Trainer:
                                           self.generator, self.transport, rough, cfg.beta1, cfg.beta2, cfg.tonemap)
             self.buffer.add(traced.secondary)
             kind = "observed"
-        if not torch.isfinite(terms.total):
-            raise NonFiniteLoss(f"step {step}: {kind} loss is {float(terms.total)}")
+        if any_rank(not bool(torch.isfinite(terms.total)), self.dist, self.device):
+            raise NonFiniteLoss(f"step {step}: {kind} loss is not finite ({terms.total.item()} on rank {self.dist.rank})")
         self.optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
+        average_gradients(self.params, self.dist)
         self.optimizer.step()
         self.scheduler.step()
         self.step += 1
@@ -104,13 +108,19 @@ class Trainer:
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
-        self.generator.set_state(state["generator"])
+        if self.dist.rank == 0:
+            self.generator.set_state(state["generator"])
+        else:  # other ranks' streams are not saved: restart them deterministically from the step
+            self.generator.manual_seed(self.cfg.seed + 1000 * self.dist.rank + 7919 * self.step)
         b = state["buffer"]
         if b is not None:
             self.buffer._items = SurfacePoints(*(t.to(self.device) for t in b["tensors"]))
             self.buffer._next, self.buffer._size = int(b["next"]), int(b["size"])
 
-    def save_checkpoint(self, folder: Path) -> Path:
+    def save_checkpoint(self, folder: Path) -> Path | None:
+        """Rank 0 writes ``step_XXXXXXX.pt`` atomically and keeps the last two."""
+        if not self.dist.is_main:
+            return None
         path = folder / f"step_{self.step:07d}.pt"
         with atomic_path(path) as tmp:
             torch.save(self.state_dict(), tmp)
@@ -127,8 +137,8 @@ class Trainer:
     def fit(self, checkpoint_dir: Path, log=None, progress: bool = True) -> None:
         """Train to ``cfg.steps``, checkpointing every ``checkpoint_every_s`` seconds and at the end."""
         last_ckpt = time.monotonic()
-        bar = tqdm(total=self.cfg.steps, initial=self.step, desc="fit", unit="step", disable=not progress,
-                   dynamic_ncols=True)
+        bar = tqdm(total=self.cfg.steps, initial=self.step, desc="fit", unit="step",
+                   disable=not progress or not self.dist.is_main, dynamic_ncols=True)
         ema = math.nan
         while self.step < self.cfg.steps:
             rec = self.train_step()
@@ -136,11 +146,11 @@ class Trainer:
                 v = rec.terms.render.item()
                 ema = v if math.isnan(ema) else 0.95 * ema + 0.05 * v
                 bar.set_postfix(loss=f"{ema:.4f}", refresh=False)
-            if log is not None:
+            if log is not None and self.dist.is_main:
                 log(rec)
             bar.update(1)
             if time.monotonic() - last_ckpt >= self.cfg.checkpoint_every_s and self.step < self.cfg.steps:
-                self.save_checkpoint(checkpoint_dir)
+                self.save_checkpoint(checkpoint_dir)  # rank 0 only
                 last_ckpt = time.monotonic()
         bar.close()
         self.save_checkpoint(checkpoint_dir)

@@ -1,0 +1,86 @@
+"""Data parallel training over processes (``torchrun``): gloo on the CPU, nccl on CUDA.
+
+Every process holds the whole model and draws its own pixel batches (its generator is seeded
+with ``seed + 1000 * rank``); after each backward pass the gradients are averaged across
+processes, so every process takes the same optimiser step and the replicas stay identical.
+Rank 0 alone writes checkpoints, logs and outputs. Started without ``torchrun`` (no
+``WORLD_SIZE`` in the environment) it is a single process and all of this is a no-op.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as dist
+
+
+@dataclass(frozen=True)
+class DistContext:
+    rank: int = 0
+    world_size: int = 1
+
+    @property
+    def active(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def init_distributed(device: torch.device) -> DistContext:
+    """Join the process group ``torchrun`` set up, if any."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return DistContext()
+    if not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+    return DistContext(rank=dist.get_rank(), world_size=dist.get_world_size())
+
+
+def local_device(device: torch.device, ctx: DistContext) -> torch.device:
+    """On CUDA each process takes the GPU of its local rank."""
+    if device.type == "cuda" and ctx.active:
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", ctx.rank)) % torch.cuda.device_count())
+    return device
+
+
+def average_gradients(params: list[torch.nn.Parameter], ctx: DistContext) -> None:
+    """All-reduce the gradients of ``params`` (one flat buffer) and divide by the world size."""
+    if not ctx.active:
+        return
+    grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params]
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat)
+    flat /= ctx.world_size
+    offset = 0
+    for p, g in zip(params, grads):
+        n = g.numel()
+        p.grad = flat[offset:offset + n].view_as(p)
+        offset += n
+
+
+def any_rank(flag: bool, ctx: DistContext, device: torch.device) -> bool:
+    """True if ``flag`` is true on any process (a collective: every process must call it)."""
+    if not ctx.active:
+        return flag
+    t = torch.tensor([1.0 if flag else 0.0], device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item() > 0)
+
+
+def parameter_checksums(model: torch.nn.Module, ctx: DistContext, device: torch.device) -> list[float]:
+    """Sum of all parameters on every process (gathered to all): equal when the replicas are in sync."""
+    s = torch.tensor([sum(float(p.detach().double().sum()) for p in model.parameters())], device=device,
+                     dtype=torch.float64)
+    if not ctx.active:
+        return [float(s)]
+    out = [torch.zeros_like(s) for _ in range(ctx.world_size)]
+    dist.all_gather(out, s)
+    return [float(t) for t in out]
+
+
+def shutdown(ctx: DistContext) -> None:
+    if ctx.active and dist.is_initialized():
+        dist.destroy_process_group()
