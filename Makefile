@@ -9,6 +9,13 @@ EXTRAS ?= dev,synth,colmap
 .PHONY: demo test install clean
 
 $(VENV)/.installed: pyproject.toml Makefile
+	@# Mitsuba's fast llvm variant (nefii synth) needs libLLVM >= 16; Debian 12's default 15 aborts.
+	@# Best effort: without it nefii synth falls back to the (slower) scalar variant with a warning.
+	@if ! dpkg -s libllvm19 >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+		echo "installing libllvm19 for Mitsuba's LLVM variant"; \
+		(apt-get update -qq && apt-get install -y -qq libllvm19 >/dev/null) || \
+		echo "libllvm19 could not be installed: nefii synth will use Mitsuba's scalar variant"; \
+	fi
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "torch==$(TORCH_VERSION)"

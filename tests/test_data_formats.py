@@ -189,3 +189,16 @@ def test_every_format_gives_the_nefii_cameras(tmp_path):
         np.testing.assert_allclose(scene.cameras.K.numpy(), ref.cameras.K.numpy(), atol=1e-9, err_msg=name)
         np.testing.assert_allclose(scene.images.numpy(), ref.images.numpy(), atol=1e-6, err_msg=name)
         assert torch.equal(scene.masks, ref.masks), name
+
+
+def test_transparent_backgrounds_are_flagged(tmp_path):
+    """RGBA renders (masks from alpha) observe nothing off the object; photos with mask files do."""
+    from data_fixtures import make_truth, write_nefii, write_physg
+
+    from nefii.data import load_scene
+
+    t = make_truth()
+    write_nefii(tmp_path / "rgba", t)
+    assert load_scene(tmp_path / "rgba").background_visible is False
+    write_physg(tmp_path / "photos", t)
+    assert load_scene(tmp_path / "photos").background_visible is True

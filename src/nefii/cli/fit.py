@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import argparse
+import json
+import resource
+import time
 from pathlib import Path
 
 import torch
@@ -17,6 +20,7 @@ from ..fit.outputs import read_config, write_config, write_outputs
 from ..fit.pixels import first_hits
 from ..fit.trainer import NonFiniteLoss, Trainer
 from ..geometry import MeshGeometry
+from ..io.atomic import write_text_atomic
 from .common import pick_device, set_threads
 
 
@@ -99,6 +103,7 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
         ckpt_dir.mkdir(exist_ok=True)
         write_config(out, cfg)
         logger = RunLogger(out, cfg)
+    t0, step0 = time.time(), trainer.step
     try:
         trainer.fit(ckpt_dir, log=logger, progress=not args.quiet)
     except NonFiniteLoss as e:
@@ -115,6 +120,13 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
         say(f"nefii fit: the {ctx.world_size} process replicas are in sync (parameter sum {sums[0]:.6g})")
     if ctx.is_main:
         write_outputs(out, cfg, trainer.model, box, Path(args.data).resolve(), Path(mesh_path).resolve())
-        written = [n for n in ("model.pt", "envmap.exr", "sg.npy", "config.json") if (out / n).exists()]
+        wall = time.time() - t0
+        stats = {"steps": trainer.step, "steps_this_session": trainer.step - step0, "wall_s_this_session": wall,
+                 "steps_per_s": (trainer.step - step0) / max(wall, 1e-9), "processes": ctx.world_size,
+                 "threads": threads, "device": str(device),
+                 "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+        write_text_atomic(out / "fit_stats.json", json.dumps(stats, indent=2) + "\n")
+        written = [n for n in ("model.pt", "envmap.exr", "sg.npy", "config.json", "fit_stats.json")
+                   if (out / n).exists()]
         say(f"nefii fit: done, {trainer.step} steps; wrote {', '.join(written)} in {out}")
     return 0

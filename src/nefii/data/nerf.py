@@ -148,7 +148,7 @@ def read(root: Path, split: str, *, prefer: tuple[str, ...] = IMAGE_SUFFIXES) ->
         image = resolve_image(root / f["file_path"], prefer)
         mask = _stem(image).with_name(_stem(image).name + "_mask.png")
         views.append(View(image=image, mask=mask if mask.is_file() else None))
-    images, masks = read_views(views)
+    images, masks, transparent = read_views(views)
     h, w = images.shape[1:3]
     if "w" in meta or "h" in meta:
         jw, jh = meta.get("w", w), meta.get("h", h)
@@ -160,6 +160,7 @@ def read(root: Path, split: str, *, prefer: tuple[str, ...] = IMAGE_SUFFIXES) ->
     envmap_file = root / "envmap.exr"
     mesh = root / "mesh.ply"
     return make_scene(
+        transparent_background=transparent,
         root=root, split=split, fmt=NAME, views=views, images=images, masks=masks, K=Ks, c2w=poses,
         ground_truth=_ground_truth(stems, (h, w), masks, mask_files),
         mesh_path=mesh if mesh.is_file() else None,

@@ -78,7 +78,7 @@ class GroundTruth:
     normal: Float[Tensor, "N H W 3"] | None = None
     """world-space shading normal"""
     depth: Float[Tensor, "N H W"] | None = None
-    """depth as the renderer wrote it (nefii synth: from the near clip plane, see docs/datasets.md)"""
+    """depth as the renderer wrote it (nefii synth: z-depth from the camera centre, see docs/datasets.md)"""
     mask: Bool[Tensor, "N H W"] | None = None
     """object coverage"""
 
@@ -136,6 +136,9 @@ class SceneData:
     """the lighting of ``images``, equirectangular in nefii's mapping, linear"""
     relit: tuple[Relit, ...] = ()
     """the same views under other environments (nefii layout, test split)"""
+    background_visible: bool = True
+    """whether non-object pixels show the environment (photos, or renders with the sky); ``False`` when
+    the background is transparent (masks from alpha, e.g. RGBA renders): those pixels observe nothing"""
 
     def __post_init__(self) -> None:
         imgs = self.images

@@ -82,7 +82,7 @@ def read(root: Path, split: str) -> SceneData:
             raise InputError(image, "image file not found")
         mask = root / (f["file_path"] + "_mask.png")
         views.append(View(image=image, mask=mask if mask.is_file() else None))
-    images, masks = read_views(views)
+    images, masks, transparent = read_views(views)
     h, w = images.shape[1:3]
     Ks = [intrinsics(meta, f, w, h, path, f"frame {i} ({f['file_path']})") for i, f in enumerate(frames)]
 
@@ -104,6 +104,7 @@ def read(root: Path, split: str) -> SceneData:
         gt["mask"] = torch.from_numpy(masks)
 
     return make_scene(
+        transparent_background=transparent,
         root=root, split=split, fmt=NAME, views=views, images=images, masks=masks, K=Ks, c2w=poses,
         indices=frame_indices(stems),
         scene_to_source=np.diag([1 / TRANSLATION_SCALE] * 3 + [1.0]),

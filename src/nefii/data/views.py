@@ -26,11 +26,13 @@ class View:
     """its mask file; ``None``: the image's alpha, if every view has one, gives the mask"""
 
 
-def read_views(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None]:
-    """Images ``(N, H, W, 3)`` linear float32 and masks ``(N, H, W)`` bool or ``None``.
+def read_views(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """Images ``(N, H, W, 3)`` linear float32, masks ``(N, H, W)`` bool or ``None``, and whether the
+    background is transparent.
 
     Masks come from the mask files when views name them (then every view must), else from
-    alpha > 0.5 when every image has an alpha channel and some alpha is below 1, else ``None``.
+    alpha > 0.5 when every image has an alpha channel and some alpha is below 1 (then the
+    background is transparent: its pixels show nothing), else ``None``.
     Different sizes, NaN/inf pixels and empty masks raise :class:`InputError` naming the file.
     """
     if not views:
@@ -44,6 +46,7 @@ def read_views(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None]:
         alphas.append(alpha)
     size = rgbs[0].shape[:2]
     masks: list[np.ndarray] | None = None
+    transparent = False
     if any(v.mask is not None for v in views):
         masks = []
         for v in views:
@@ -55,11 +58,12 @@ def read_views(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None]:
             masks.append(m)
     elif all(a is not None for a in alphas) and any(bool((a < 1.0).any()) for a in alphas):
         masks = []
+        transparent = True
         for v, a in zip(views, alphas):
             m = a > 0.5
             check_mask(m, v.image)
             masks.append(m)
-    return np.stack(rgbs), (None if masks is None else np.stack(masks))
+    return np.stack(rgbs), (None if masks is None else np.stack(masks)), transparent
 
 
 def frame_indices(stems: Sequence[str]) -> tuple[int, ...]:
@@ -80,6 +84,7 @@ def relative_name(path: Path, root: Path) -> str:
 
 def make_scene(*, root: Path, split: str, fmt: str, views: Sequence[View], images: np.ndarray,
                masks: np.ndarray | None, K: Sequence[np.ndarray], c2w: Sequence[np.ndarray],
+               transparent_background: bool = False,
                indices: Sequence[int] | None = None, scene_to_source: np.ndarray | None = None,
                ground_truth: GroundTruth | None = None, mesh_path: Path | None = None,
                envmap: np.ndarray | None = None, relit: Sequence[Relit] = ()) -> SceneData:
@@ -99,5 +104,5 @@ def make_scene(*, root: Path, split: str, fmt: str, views: Sequence[View], image
                                          else np.asarray(scene_to_source, np.float64)),
         ground_truth=ground_truth, mesh_path=mesh_path,
         envmap=None if envmap is None else torch.from_numpy(np.ascontiguousarray(envmap, dtype=np.float32)),
-        relit=tuple(relit),
+        relit=tuple(relit), background_visible=not transparent_background,
     )

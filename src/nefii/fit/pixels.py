@@ -37,14 +37,15 @@ def view_rays(scene: SceneData, view: int) -> tuple[Float[Tensor, "H W 3"], Floa
 
 def first_hits(scene: SceneData, geometry: Geometry) -> TrainingPixels:
     """Cast every pixel once. Object pixels: the ray hits the mesh (and the mask, if any, says object).
-    Background pixels: no hit (and the mask, if any, says background). Pixels where mask and
-    geometry disagree (silhouette errors, anti-aliased edges) are left out of both."""
+    Background pixels: no hit (and the mask, if any, says background), and only where the background
+    is visible at all (not for transparent RGBA renders). Pixels where mask and geometry disagree
+    (silhouette errors, anti-aliased edges) are left out of both."""
     pts, rgb, bg_d, bg_c = [], [], [], []
     for v in range(len(scene)):
         o, d = view_rays(scene, v)
         hit = geometry.intersect(Rays(o.reshape(-1, 3), d.reshape(-1, 3)))
         colour = scene.images[v].reshape(-1, 3)
-        obj, bg = hit.valid, ~hit.valid
+        obj, bg = hit.valid, ~hit.valid & scene.background_visible
         if scene.masks is not None:
             m = scene.masks[v].reshape(-1)
             obj, bg = obj & m, bg & ~m
