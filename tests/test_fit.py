@@ -34,8 +34,11 @@ def read_log(run: Path) -> list[dict]:
 def test_fit_then_eval_writes_everything_and_the_loss_goes_down(tiny_scene, tmp_path):
     run = tmp_path / "run"
     rc = main(["fit", str(tiny_scene), "--out", str(run), "--preset", "tiny", "--quiet",
-               "--set", "steps=80", "--set", "lr=0.02"])
+               "--set", "steps=80", "--set", "lr=0.02", "--set", "preview_every=40"])
     assert rc == 0
+    assert sorted(p.name for p in (run / "previews").iterdir()) == ["step_0000040.png", "step_0000080.png"]
+    stats = json.loads((run / "fit_stats.json").read_text())
+    assert stats["steps"] == 80 and stats["steps_per_s"] > 0 and stats["peak_rss_gib"] > 0
     for name in ("model.pt", "envmap.exr", "sg.npy", "config.json", "log.csv"):
         assert (run / name).is_file(), name
     sg = np.load(run / "sg.npy")

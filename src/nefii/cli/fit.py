@@ -18,6 +18,7 @@ from ..fit.light_init import estimate_light, set_sg_parameters, sg_from_light
 from ..fit.logging import RunLogger
 from ..fit.outputs import read_config, write_config, write_outputs
 from ..fit.pixels import first_hits
+from ..fit.preview import write_preview
 from ..fit.trainer import NonFiniteLoss, Trainer
 from ..geometry import MeshGeometry
 from ..io.atomic import write_text_atomic
@@ -104,8 +105,13 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
         write_config(out, cfg)
         logger = RunLogger(out, cfg)
     t0, step0 = time.time(), trainer.step
+
+    def preview(step: int) -> None:
+        write_preview(out / "previews" / f"step_{step:07d}.png", trainer.model, geometry, scene,
+                      view=(step // max(cfg.preview_every, 1)) % len(scene), transport=trainer.transport)
+
     try:
-        trainer.fit(ckpt_dir, log=logger, progress=not args.quiet)
+        trainer.fit(ckpt_dir, log=logger, progress=not args.quiet, preview=preview)
     except NonFiniteLoss as e:
         say(f"nefii fit: error: {e}; the last good checkpoint is in {ckpt_dir}")
         return 1

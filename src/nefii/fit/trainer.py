@@ -134,8 +134,9 @@ class Trainer:
         return found[-1] if found else None
 
     # ---- the loop
-    def fit(self, checkpoint_dir: Path, log=None, progress: bool = True) -> None:
-        """Train to ``cfg.steps``, checkpointing every ``checkpoint_every_s`` seconds and at the end."""
+    def fit(self, checkpoint_dir: Path, log=None, progress: bool = True, preview=None) -> None:
+        """Train to ``cfg.steps``, checkpointing every ``checkpoint_every_s`` seconds and at the end;
+        ``preview(step)`` is called every ``cfg.preview_every`` steps on rank 0."""
         last_ckpt = time.monotonic()
         bar = tqdm(total=self.cfg.steps, initial=self.step, desc="fit", unit="step",
                    disable=not progress or not self.dist.is_main, dynamic_ncols=True)
@@ -148,6 +149,9 @@ class Trainer:
                 bar.set_postfix(loss=f"{ema:.4f}", refresh=False)
             if log is not None and self.dist.is_main:
                 log(rec)
+            if preview is not None and self.dist.is_main and self.cfg.preview_every and \
+                    self.step % self.cfg.preview_every == 0:
+                preview(self.step)
             bar.update(1)
             if time.monotonic() - last_ckpt >= self.cfg.checkpoint_every_s and self.step < self.cfg.steps:
                 self.save_checkpoint(checkpoint_dir)  # rank 0 only
