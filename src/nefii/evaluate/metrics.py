@@ -19,27 +19,32 @@ LPIPS_UNAVAILABLE = ("LPIPS needs pretrained VGG/AlexNet weights; none can be lo
 
 def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
     """``-10 log10(MSE)`` over all pixels, or over ``mask`` (H, W) pixels; images in [0, 1]."""
-    err = (np.asarray(pred, np.float64) - np.asarray(gt, np.float64)) ** 2
-    if mask is not None:
-        if not mask.any():
-            return math.nan
-        err = err[mask]
-    mse = float(err.mean())
-    return math.inf if mse == 0 else -10.0 * math.log10(mse)
+    err = mse(pred, gt, mask)
+    if math.isnan(err):
+        return math.nan
+    return math.inf if err == 0 else -10.0 * math.log10(err)
+
+
+SSIM_PAD = 5
+"""half the 11-tap window: scikit-image (and the NeRF code) average the SSIM map without this border"""
 
 
 def ssim(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """Gaussian SSIM of (H, W[, C]) images in [0, 1]; with ``mask``, the SSIM map's mean over it."""
+    """Gaussian SSIM of (H, W[, C]) images in [0, 1]; with ``mask``, the SSIM map's mean over the mask
+    (inside the same border-cropped region the unmasked mean uses)."""
     pred = np.asarray(pred, np.float64)
     gt = np.asarray(gt, np.float64)
     channel_axis = -1 if pred.ndim == 3 else None
-    _, smap = structural_similarity(pred, gt, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-                                    data_range=1.0, channel_axis=channel_axis, full=True)
+    mean, smap = structural_similarity(pred, gt, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                       data_range=1.0, channel_axis=channel_axis, full=True)
+    if mask is None:
+        return float(mean)
     if smap.ndim == 3:
         smap = smap.mean(-1)
-    if mask is None:
-        return float(smap.mean())
-    return float(smap[mask].mean()) if mask.any() else math.nan
+    inner = np.zeros_like(mask, dtype=bool)
+    inner[SSIM_PAD:-SSIM_PAD, SSIM_PAD:-SSIM_PAD] = True
+    m = mask & inner
+    return float(smap[m].mean()) if m.any() else math.nan
 
 
 def median_scale(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, eps: float = 1e-6) -> np.ndarray:
@@ -59,6 +64,7 @@ def median_scale(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, eps: float 
 
 
 def mse(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean squared error over all pixels, or over ``mask`` (H, W) pixels; NaN for an empty mask."""
     err = (np.asarray(pred, np.float64) - np.asarray(gt, np.float64)) ** 2
     if mask is not None:
         if not mask.any():
