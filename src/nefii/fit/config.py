@@ -95,6 +95,12 @@ class FitConfig:
     """weight of the background loss (Eq. 7)"""
     tonemap: str = "log1p"
     """colour space of the losses: ``none`` (linear, as Eq. 7) or ``log1p`` (keeps highlights from dominating)"""
+    smooth_albedo: float = 0.0
+    """weight of an L1 prior between the albedo at a point and at a jittered neighbour (0: off, as the paper)"""
+    smooth_roughness: float = 0.0
+    """the same for roughness (after the warm-up)"""
+    smooth_radius: float = 0.01
+    """jitter of the smoothness prior, as a fraction of the scene's bounding-box diagonal"""
     secondary_buffer: int = 65536
     """secondary hits kept for the unobserved step"""
     ray_offset: float = 1e-4

@@ -41,12 +41,39 @@ class LossTerms:
     """L1 of the cache's own colour L(x, n, wo) (Eq. 7, second term)"""
     background: Tensor
     """L2 of the environment seen by background pixels (Eq. 7, third term)"""
+    smooth: Tensor | None = None
+    """material smoothness prior (not in the paper; 0 weight turns it off)"""
+
+
+@dataclass(frozen=True)
+class SmoothnessPrior:
+    """``albedo |a(x) - a(x + d)|_1 + roughness |r(x) - r(x + d)|_1``, ``d ~ N(0, radius^2)`` per axis."""
+
+    albedo: float = 0.0
+    roughness: float = 0.0
+    radius: float = 0.01
+    """in world units"""
+
+    @property
+    def active(self) -> bool:
+        return self.albedo > 0 or self.roughness > 0
+
+
+def smoothness(model: NeFIIModel, x: Tensor, material, prior: SmoothnessPrior, roughness_override: float | None,
+               generator: torch.Generator | None) -> Tensor:
+    d = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype) * prior.radius
+    other = model.material(x + d, roughness_override=roughness_override)
+    loss = prior.albedo * (material.albedo - other.albedo).abs().mean()
+    if roughness_override is None:
+        loss = loss + prior.roughness * (material.roughness - other.roughness).abs().mean()
+    return loss
 
 
 def observed_loss(model: NeFIIModel, geometry: Geometry, batch: ObservedBatch, num_samples: int,
                   generator: torch.Generator | None, transport: Transport, roughness_override: float | None,
-                  beta1: float = 1.0, beta2: float = 1.0, tone: str = "none") -> tuple[LossTerms, PathTraced]:
-    """Eq. 7: ``|c_pt - c|_1 + beta1 |L(x,n,wo) - c|_1 + beta2 |E(d_bg) - c_bg|_2^2``."""
+                  beta1: float = 1.0, beta2: float = 1.0, tone: str = "none",
+                  prior: SmoothnessPrior = SmoothnessPrior()) -> tuple[LossTerms, PathTraced]:
+    """Eq. 7: ``|c_pt - c|_1 + beta1 |L(x,n,wo) - c|_1 + beta2 |E(d_bg) - c_bg|_2^2`` (+ the optional prior)."""
     pts = batch.points
     traced = path_trace(model, geometry, pts, num_samples, generator, transport, roughness_override)
     gt = tonemap(batch.rgb, tone)
@@ -57,7 +84,11 @@ def observed_loss(model: NeFIIModel, geometry: Geometry, batch: ObservedBatch, n
     else:
         l_bg = l_render.new_zeros(())
     total = l_render + beta1 * l_cache + beta2 * l_bg
-    return LossTerms(total, l_render, l_cache, l_bg), traced
+    l_smooth = None
+    if prior.active:
+        l_smooth = smoothness(model, pts.position, traced.material, prior, roughness_override, generator)
+        total = total + l_smooth
+    return LossTerms(total, l_render, l_cache, l_bg, l_smooth), traced
 
 
 def unobserved_loss(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_samples: int,

@@ -5,12 +5,17 @@
     RUN/envmap.exr         the recovered SGs as an equirectangular image (docs/design.md mapping)
     RUN/sg.npy             (K, 7) float32: axis xyz, sharpness, amplitude rgb (SG light only)
     RUN/checkpoints/       resumable training state (step_XXXXXXX.pt, atomic)
+
+``material_at`` is the one decode of the recovered material at given surface points, the same
+``model.material`` call that ``path_trace`` makes (fit, eval, relight); export bakes it into
+textures.
 """
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -19,6 +24,7 @@ from ..errors import InputError
 from ..io.atomic import atomic_path, write_text_atomic
 from ..io.exr import write_exr
 from ..fields.environment import SGEnvironment
+from ..render.brdf import Material
 from ..render.sg import SGMixture
 from .build import build_model
 from .config import FitConfig, config_from_dict, config_to_dict
@@ -83,3 +89,24 @@ def load_run(folder: str | Path, device: torch.device | str = "cpu") -> FittedRu
     except Exception as e:
         raise InputError(path, f"not a readable nefii model ({type(e).__name__}: {e})") from None
     return FittedRun(folder, cfg, model.to(device).eval(), Path(blob["data"]), Path(blob["mesh"]))
+
+
+@torch.no_grad()
+def material_at(model: NeFIIModel, points: torch.Tensor, chunk: int = 65536,
+                progress: Callable[[int], None] | None = None) -> Material:
+    """The fitted material at world points ``(N, 3)``, decoded in chunks without gradient.
+
+    Returns albedo ``(N, 3)`` (linear, [0, 1]) and roughness ``(N,)`` on the model's device;
+    ``progress(n)`` is called with the number of points done after each chunk.
+    """
+    device = next(model.parameters()).device
+    albedo, roughness = [], []
+    for part in points.split(chunk):
+        m = model.material(part.to(device=device, dtype=torch.float32))
+        albedo.append(m.albedo)
+        roughness.append(m.roughness)
+        if progress is not None:
+            progress(len(part))
+    if not albedo:
+        return Material(torch.zeros(0, 3, device=device), torch.zeros(0, device=device))
+    return Material(torch.cat(albedo), torch.cat(roughness))

@@ -18,7 +18,7 @@ from ..geometry.base import Geometry
 from ..io.atomic import atomic_path
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
-from .losses import LossTerms, ObservedBatch, SecondaryHitBuffer, observed_loss, unobserved_loss
+from .losses import LossTerms, ObservedBatch, SecondaryHitBuffer, SmoothnessPrior, observed_loss, unobserved_loss
 from .model import NeFIIModel, Transport
 from .pixels import TrainingPixels
 from .policies import Alternation, RoughnessWarmup
@@ -53,6 +53,7 @@ class Trainer:
         self.warmup = RoughnessWarmup(int(round(cfg.roughness_warmup * cfg.steps)))
         self.alternation = Alternation(cfg.unobserved_every, cfg.unobserved)
         self.transport = Transport(indirect=cfg.indirect, visibility=cfg.visibility)
+        self.prior = SmoothnessPrior(cfg.smooth_albedo, cfg.smooth_roughness, cfg.smooth_radius * geometry.scale)
         self.step = 0
 
     # ---- one step
@@ -73,7 +74,8 @@ class Trainer:
             kind = "unobserved"
         else:
             terms, traced = observed_loss(self.model, self.geometry, self._observed_batch(), cfg.num_samples,
-                                          self.generator, self.transport, rough, cfg.beta1, cfg.beta2, cfg.tonemap)
+                                          self.generator, self.transport, rough, cfg.beta1, cfg.beta2, cfg.tonemap,
+                                          self.prior)
             self.buffer.add(traced.secondary)
             kind = "observed"
         if any_rank(not bool(torch.isfinite(terms.total)), self.dist, self.device):
