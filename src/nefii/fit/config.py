@@ -93,6 +93,8 @@ class FitConfig:
     """weight of the cache's own colour loss (Eq. 7)"""
     beta2: float = 1.0
     """weight of the background loss (Eq. 7)"""
+    loss: str = "l1"
+    """distance of the colour losses: ``l1`` (Eq. 7, 8) or ``l2`` (squared)"""
     tonemap: str = "log1p"
     """colour space of the losses: ``none`` (linear, as Eq. 7) or ``log1p`` (keeps highlights from dominating)"""
     smooth_albedo: float = 0.0

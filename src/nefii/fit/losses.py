@@ -20,6 +20,16 @@ def tonemap(x: Tensor, kind: str) -> Tensor:
     raise ValueError(f"unknown tonemap {kind!r}")
 
 
+def distance(a: Tensor, b: Tensor, kind: str) -> Tensor:
+    """Mean per-channel distance: ``l1`` (the paper's) or ``l2`` (squared; does not treat sparse
+    highlights as outliers the way L1 does, which otherwise biases roughness towards glossy)."""
+    if kind == "l1":
+        return (a - b).abs().mean()
+    if kind == "l2":
+        return (a - b).square().mean()
+    raise ValueError(f"unknown loss {kind!r} (l1 | l2)")
+
+
 @dataclass(frozen=True)
 class ObservedBatch:
     """Pixels of the training images: object pixels at their cached first hits, and background pixels."""
@@ -72,13 +82,13 @@ def smoothness(model: NeFIIModel, x: Tensor, material, prior: SmoothnessPrior, r
 def observed_loss(model: NeFIIModel, geometry: Geometry, batch: ObservedBatch, num_samples: int,
                   generator: torch.Generator | None, transport: Transport, roughness_override: float | None,
                   beta1: float = 1.0, beta2: float = 1.0, tone: str = "none",
-                  prior: SmoothnessPrior = SmoothnessPrior()) -> tuple[LossTerms, PathTraced]:
+                  prior: SmoothnessPrior = SmoothnessPrior(), kind: str = "l1") -> tuple[LossTerms, PathTraced]:
     """Eq. 7: ``|c_pt - c|_1 + beta1 |L(x,n,wo) - c|_1 + beta2 |E(d_bg) - c_bg|_2^2`` (+ the optional prior)."""
     pts = batch.points
     traced = path_trace(model, geometry, pts, num_samples, generator, transport, roughness_override)
     gt = tonemap(batch.rgb, tone)
-    l_render = (tonemap(traced.radiance.rgb, tone) - gt).abs().mean()
-    l_cache = (tonemap(model.cache(pts.position, pts.normal, pts.wo), tone) - gt).abs().mean()
+    l_render = distance(tonemap(traced.radiance.rgb, tone), gt, kind)
+    l_cache = distance(tonemap(model.cache(pts.position, pts.normal, pts.wo), tone), gt, kind)
     if len(batch.bg_dirs):
         l_bg = (tonemap(model.env.radiance(batch.bg_dirs), tone) - tonemap(batch.bg_rgb, tone)).square().mean()
     else:
@@ -93,11 +103,11 @@ def observed_loss(model: NeFIIModel, geometry: Geometry, batch: ObservedBatch, n
 
 def unobserved_loss(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_samples: int,
                     generator: torch.Generator | None, transport: Transport, roughness_override: float | None,
-                    tone: str = "none") -> LossTerms:
+                    tone: str = "none", kind: str = "l1") -> LossTerms:
     """Eq. 8: L1 between path tracing at secondary hits and the cache there; neither side detached."""
     traced = path_trace(model, geometry, pts, num_samples, generator, transport, roughness_override)
     cached = model.cache(pts.position, pts.normal, pts.wo)
-    l = (tonemap(traced.radiance.rgb, tone) - tonemap(cached, tone)).abs().mean()
+    l = distance(tonemap(traced.radiance.rgb, tone), tonemap(cached, tone), kind)
     zero = l.new_zeros(())
     return LossTerms(l, l, zero, zero)
 

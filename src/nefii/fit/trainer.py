@@ -70,12 +70,12 @@ class Trainer:
         if self.alternation.unobserved(step) and len(self.buffer) > 0:
             pts = self.buffer.sample(cfg.unobserved_points, self.generator)
             terms = unobserved_loss(self.model, self.geometry, pts, cfg.num_samples, self.generator,
-                                    self.transport, rough, cfg.tonemap)
+                                    self.transport, rough, cfg.tonemap, cfg.loss)
             kind = "unobserved"
         else:
             terms, traced = observed_loss(self.model, self.geometry, self._observed_batch(), cfg.num_samples,
                                           self.generator, self.transport, rough, cfg.beta1, cfg.beta2, cfg.tonemap,
-                                          self.prior)
+                                          self.prior, cfg.loss)
             self.buffer.add(traced.secondary)
             kind = "observed"
         if any_rank(not bool(torch.isfinite(terms.total)), self.dist, self.device):
