@@ -85,8 +85,10 @@ def test_resume_after_sigkill_matches_an_uninterrupted_run(tiny_scene, tmp_path)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert not (killed / "model.pt").exists(), "the run finished before it could be killed"
-    assert not list((killed / "checkpoints").glob(".*")), "a half-written checkpoint was left behind"
+    # a kill during a checkpoint write leaves only a temporary, never a partial step_*.pt
+    (killed / "checkpoints" / ".step_0000005.abc.pt").write_bytes(b"partial")
     subprocess.run(_fit_cmd(tiny_scene, killed, "--resume"), check=True, env=env, capture_output=True)
+    assert not list((killed / "checkpoints").glob(".*")), "stale temporaries are cleaned on resume"
 
     a = torch.load(straight / "model.pt", weights_only=False)["state"]
     b = torch.load(killed / "model.pt", weights_only=False)["state"]
