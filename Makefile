@@ -11,10 +11,12 @@ EXTRAS ?= dev,synth,colmap
 $(VENV)/.installed: pyproject.toml Makefile
 	@# Mitsuba's fast llvm variant (nefii synth) needs libLLVM >= 16; Debian 12's default 15 aborts.
 	@# Best effort: without it nefii synth falls back to the (slower) scalar variant with a warning.
-	@if ! dpkg -s libllvm19 >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
-		echo "installing libllvm19 for Mitsuba's LLVM variant"; \
-		(apt-get update -qq && apt-get install -y -qq libllvm19 >/dev/null) || \
-		echo "libllvm19 could not be installed: nefii synth will use Mitsuba's scalar variant"; \
+	@# Chromium runs the test of `nefii view` (the test skips itself without it).
+	@missing=""; for p in libllvm19 chromium; do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ] && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+		echo "installing$$missing (Debian packages)"; \
+		(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null) || \
+		echo "could not install$$missing: nefii synth falls back to Mitsuba's scalar variant, the view test skips"; \
 	fi
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip

@@ -35,6 +35,17 @@ def scene_env() -> SGMixture:
                      torch.tensor([[20.0, 19.0, 17.0], [0.6, 0.7, 0.9], [0.2, 0.15, 0.1]]))
 
 
+def relight_envs() -> dict[str, SGMixture]:
+    """Two other environments for ``relight/<name>/`` (a low warm sun; a cool sun from the other side)."""
+    axes = torch.tensor([[-0.6, 0.55, 0.45], [0.0, 0.0, 1.0]])
+    axes = axes / axes.norm(dim=-1, keepdim=True)
+    dusk = SGMixture(axes, torch.tensor([60.0, 1.5]), torch.tensor([[18.0, 10.0, 4.0], [0.3, 0.3, 0.45]]))
+    axes2 = torch.tensor([[0.5, 0.7, 0.5], [0.0, 0.0, 1.0]])
+    axes2 = axes2 / axes2.norm(dim=-1, keepdim=True)
+    dawn = SGMixture(axes2, torch.tensor([40.0, 1.0]), torch.tensor([[8.0, 10.0, 14.0], [0.5, 0.45, 0.4]]))
+    return {"dusk": dusk, "dawn": dawn}
+
+
 def scene_material(x: torch.Tensor) -> Material:
     red = (x[..., 0] > 0).float().unsqueeze(-1)
     albedo = red * torch.tensor([0.7, 0.2, 0.15]) + (1 - red) * torch.tensor([0.3, 0.5, 0.7])
@@ -69,7 +80,10 @@ def render(geometry: MeshGeometry, env: SGMixture, c2w: torch.Tensor, K: torch.T
             rough.reshape(shape).numpy(), spec.reshape(*shape, 3).numpy())
 
 
-def write_rendered_scene(root: Path, res: int = 16, n_train: int = 6, n_test: int = 2, seed: int = 0) -> Path:
+def write_rendered_scene(root: Path, res: int = 16, n_train: int = 6, n_test: int = 2, seed: int = 0,
+                         relight: bool = False) -> Path:
+    """The scene; with ``relight``, also the test views under :func:`relight_envs` (``relight/<name>/r_K.exr``
+    and ``relight/<name>.exr``, as ``nefii synth`` writes them)."""
     mesh = scene_mesh()
     geometry = MeshGeometry(mesh.vertices, mesh.faces)
     env = scene_env()
@@ -92,10 +106,15 @@ def write_rendered_scene(root: Path, res: int = 16, n_train: int = 6, n_test: in
                 write_exr(root / split / f"r_{k}_roughness.exr", rough)
                 write_exr(root / split / f"r_{k}_specular.exr", spec)
                 write_png(root / split / f"r_{k}_mask.png", mask.astype(np.float32), srgb=False)
+                for name, other in (relight_envs() if relight else {}).items():
+                    relit = render(geometry, other, c2w, K, res, gen)[0]
+                    write_exr(root / "relight" / name / f"r_{k}.exr", np.concatenate([relit * alpha, alpha], -1))
         f = float(K[0, 0])
         (root / f"transforms_{split}.json").write_text(json.dumps({
             "camera_angle_x": fov, "w": res, "h": res, "fl_x": f, "fl_y": f, "cx": res / 2, "cy": res / 2,
             "frames": frames}))
     mesh.export(root / "mesh.ply")
     write_exr(root / "envmap.exr", sg_to_equirect(env, 32, 64).numpy())
+    for name, other in (relight_envs() if relight else {}).items():
+        write_exr(root / "relight" / f"{name}.exr", sg_to_equirect(other, 32, 64).numpy())
     return root

@@ -39,6 +39,8 @@ class EnvmapDistribution:
     """(H, W+1) conditional CDFs over columns of each row"""
     p_uv: Float[Tensor, "H W"]
     """density over the unit square (u, v) of each pixel"""
+    col_cdf_shifted: Float[Tensor, " HWp1"]
+    """float64 ``col_cdf + row index``, flattened: all rows' CDFs as one increasing sequence"""
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -62,16 +64,32 @@ def build_envmap_distribution(image: Float[Tensor, "H W 3"], floor: float = 1e-3
     row_sum = f.sum(-1)
     total = row_sum.sum()
     p_uv = f / total * (H * W)
-    return EnvmapDistribution(row_cdf=_cdf(row_sum), col_cdf=_cdf(f), p_uv=p_uv)
+    col_cdf = _cdf(f)
+    shifted = (col_cdf.double() + torch.arange(H, device=image.device, dtype=torch.float64).unsqueeze(-1)).reshape(-1)
+    return EnvmapDistribution(row_cdf=_cdf(row_sum), col_cdf=col_cdf, p_uv=p_uv, col_cdf_shifted=shifted)
 
 
 def _sample_cdf(cdf: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-    """Bin index and continuous offset in [0, 1) within it, for CDFs ``(..., n+1)``."""
+    """Bin index and continuous offset in [0, 1) within it, for one CDF ``(n+1,)`` and any ``u``."""
     n = cdf.shape[-1] - 1
-    idx = (torch.searchsorted(cdf, u.unsqueeze(-1).contiguous(), right=True).squeeze(-1) - 1).clamp(0, n - 1)
-    lo = cdf.gather(-1, idx.unsqueeze(-1)).squeeze(-1)
-    hi = cdf.gather(-1, (idx + 1).unsqueeze(-1)).squeeze(-1)
+    idx = (torch.searchsorted(cdf, u.contiguous(), right=True) - 1).clamp(0, n - 1)
+    lo, hi = cdf[idx], cdf[idx + 1]
     off = ((u - lo) / (hi - lo).clamp_min(1e-30)).clamp(0.0, 1.0 - 1e-7)
+    return idx, off
+
+
+def _sample_row_cdfs(cdfs: Tensor, shifted: Tensor, row: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    """As :func:`_sample_cdf` in the CDF ``cdfs[row]`` of each sample (``cdfs``: ``(H, n+1)``).
+
+    One search in ``shifted``, the concatenation of all rows each shifted by its row index
+    (float64, so the shift keeps full precision): no per-sample copy of a row.
+    """
+    H, n1 = cdfs.shape
+    key = row.double() + u.double()
+    pos = torch.searchsorted(shifted, key.contiguous(), right=True) - 1
+    idx = (pos - row * n1).clamp(0, n1 - 2)
+    a, b = cdfs[row, idx], cdfs[row, idx + 1]
+    off = ((u - a) / (b - a).clamp_min(1e-30)).clamp(0.0, 1.0 - 1e-7)
     return idx, off
 
 
@@ -80,8 +98,8 @@ def sample_envmap(dist: EnvmapDistribution, u: Float[Tensor, "*bs 2"]) -> Float[
     H, W = dist.shape
     bs = u.shape[:-1]
     u = u.reshape(-1, 2)
-    row, off_v = _sample_cdf(dist.row_cdf.expand(len(u), -1).contiguous(), u[:, 0])
-    col, off_u = _sample_cdf(dist.col_cdf[row], u[:, 1])
+    row, off_v = _sample_cdf(dist.row_cdf, u[:, 0])
+    col, off_u = _sample_row_cdfs(dist.col_cdf, dist.col_cdf_shifted, row, u[:, 1])
     uu = (col.to(u.dtype) + off_u) / W
     vv = (row.to(u.dtype) + off_v) / H
     return uv_to_direction(uu, vv).reshape(*bs, 3)

@@ -1,0 +1,183 @@
+"""``nefii relight RUN --envmap FILE``: render the fitted object under a new environment by path tracing.
+
+Writes ``OUT/<env>/K.exr`` (linear RGBA, premultiplied: coverage in A, background 0, as the
+dataset's images) and ``K.png`` (sRGB with highlights rolled off, straight alpha) for every view
+``K``, and ``render.json`` (what was rendered, with the albedo scale). ``OUT`` is ``RUN/relight``
+unless ``--out`` says otherwise; ``<env>`` is the file's stem, with ``_rot<DEG>`` / ``_ev<EV>``
+appended when turned or exposed. Where the dataset has ground truth for that environment
+(``relight/<env>/``, names matched by stem, map neither turned nor exposed), each view's PSNR and
+SSIM go into ``OUT/metrics.json`` under ``<env>`` (other environments' entries kept) and
+``K_grid.png`` shows GT | relit | error x4.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ..data import load_scene
+from ..data.scene import Relit
+from ..errors import InputError
+from ..evaluate.report import write_grid
+from ..fit.outputs import load_run
+from ..geometry import MeshGeometry
+from ..io.atomic import atomic_dir, write_text_atomic
+from ..io.exr import write_exr
+from ..io.images import write_png
+from ..relight.environment import load_environment
+from ..relight.pathtracer import PathSettings
+from ..relight.render import render_relit
+from ..relight.report import (PROTOCOL, albedo_scale_from_eval, albedo_scale_from_ground_truth, merge_metrics,
+                              metrics_entry, scaled_material, score_view, tone_map)
+from ..relight.views import Views, views_from_transforms
+from .common import pick_device, set_threads
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("relight", help="render the fitted object under a new environment map (path tracing)",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run", type=Path, help="run folder written by `nefii fit`")
+    p.add_argument("--envmap", type=Path, required=True, metavar="FILE",
+                   help="equirectangular HDR environment (.exr or .hdr), in nefii's mapping (docs/design.md)")
+    p.add_argument("--rotate", type=float, default=0.0, metavar="DEG",
+                   help="turn the environment about world +Z by DEG degrees, counter-clockwise seen from above "
+                        "(a light at azimuth phi moves to phi + DEG)")
+    p.add_argument("--exposure", type=float, default=0.0, metavar="EV", help="scale the radiance by 2^EV (linear)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder (default RUN/relight)")
+    p.add_argument("--spp", type=int, default=256, metavar="N", help="paths per pixel (default 256)")
+    p.add_argument("--max-bounces", type=int, default=8, metavar="N",
+                   help="surface interactions per path (default 8; 1: direct light only)")
+    p.add_argument("--cameras", type=Path, default=None, metavar="JSON",
+                   help="render these cameras (a NeRF-style transforms.json) instead of the test views")
+    p.add_argument("--data", type=Path, default=None, metavar="DIR",
+                   help="dataset with the test split (default: the fitted one)")
+    p.add_argument("--albedo-scale", choices=("auto", "none"), default="auto",
+                   help="auto: apply the albedo scale eval found (or the same computed against ground-truth "
+                        "albedo); none: the fitted albedo as it is")
+    p.add_argument("--device", default="auto", help="cpu | cuda | auto")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def env_name(path: Path, rotate: float, exposure: float) -> str:
+    name = path.stem
+    if rotate:
+        name += f"_rot{rotate:g}"
+    if exposure:
+        name += f"_ev{exposure:+g}"
+    return name
+
+
+def _warn(caught: list[warnings.WarningMessage]) -> None:
+    for w in caught:
+        print(f"nefii relight: warning: {w.message}")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.spp < 1:
+        raise InputError(None, f"--spp {args.spp}: must be at least 1")
+    if args.max_bounces < 1:
+        raise InputError(None, f"--max-bounces {args.max_bounces}: must be at least 1")
+    device = pick_device(args.device)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        env = load_environment(args.envmap, args.rotate, args.exposure, device)
+    _warn(caught)
+    fitted = load_run(args.run, device)
+    set_threads(fitted.config.threads)
+    geometry = MeshGeometry.from_file(fitted.mesh)
+    name = env_name(args.envmap, args.rotate, args.exposure)
+
+    # ---- the views, and the ground truth for this environment if the dataset has it
+    scene, gt = None, None
+    if args.cameras is not None:
+        views = views_from_transforms(args.cameras)
+    else:
+        scene = load_scene(args.data or fitted.data, "test")
+        views = Views(scene.cameras, scene.indices)
+        gt = next((r for r in scene.relit if r.name == args.envmap.stem), None)
+        if gt is not None and (args.rotate or args.exposure):
+            print(f"nefii relight: not scored against the dataset's '{gt.name}': the map is turned or exposed")
+            gt = None
+        _check_same_map(gt, env.image)
+
+    # ---- the albedo scale
+    material = fitted.model.material
+    scale, source = None, "none (--albedo-scale none)"
+    if args.albedo_scale == "auto":
+        scale = albedo_scale_from_eval(args.run)
+        source = f"mean of the per-view albedo_scale in {args.run / 'eval' / 'metrics.json'}"
+        if scale is None and scene is not None:
+            scale = albedo_scale_from_ground_truth(material, geometry, scene, device)
+            source = "median(gt / pred) albedo per test view over the mask, mean over views (eval has not run)"
+        if scale is None:
+            source = "none: eval has not run and the dataset has no ground-truth albedo"
+    material = scaled_material(material, scale)
+    stated = [float(s) for s in (np.ones(3) if scale is None else scale)]
+
+    # ---- render every view
+    settings = PathSettings(max_bounces=args.max_bounces)
+    out_root = args.out or args.run / "relight"
+    g = torch.Generator(device=device).manual_seed(args.seed)
+    cams = views.cameras
+    scores = []
+    with atomic_dir(out_root / name) as out:
+        for v in tqdm(range(len(cams)), desc=f"relight {name}", unit="view", disable=args.quiet):
+            img = render_relit(geometry, material, env, cams.c2w[v], cams.K[v], cams.height, cams.width,
+                               args.spp, g, settings)
+            k = views.indices[v]
+            rgb = img.rgb.cpu().numpy()
+            alpha = img.coverage.cpu().numpy()[..., None]
+            write_exr(out / f"{k}.exr", np.concatenate([img.premultiplied.cpu().numpy(), alpha], -1))
+            write_png(out / f"{k}.png", np.concatenate([tone_map(rgb), alpha], -1))
+            if gt is not None:
+                truth = gt.images[v].numpy()
+                mask = _mask(scene, v, alpha[..., 0])
+                p, s = score_view(rgb, truth, mask)
+                scores.append({"index": k, "psnr": p, "ssim": s})
+                write_grid(out / f"{k}_grid.png", [(truth, rgb)], [True])
+        info = {"envmap": str(args.envmap), "rotate_deg": args.rotate, "exposure_ev": args.exposure,
+                "spp": args.spp, "max_bounces": args.max_bounces, "rr_depth": settings.rr_depth,
+                "seed": args.seed, "views": len(cams), "albedo_scale": stated, "albedo_scale_source": source,
+                "images": "K.exr linear RGBA premultiplied (A = coverage); K.png sRGB, highlights rolled off "
+                          "above linear 0.8, straight alpha"}
+        write_text_atomic(out / "render.json", json.dumps(info, indent=2) + "\n")
+
+    print(f"nefii relight: albedo scale {np.round(stated, 4).tolist()} ({source})")
+    if scores:
+        entry = metrics_entry(scores, albedo_scale=stated, albedo_scale_source=source, spp=args.spp,
+                              max_bounces=args.max_bounces, envmap=str(args.envmap), protocol=PROTOCOL)
+        merge_metrics(out_root / "metrics.json", name, entry)
+        print(f"nefii relight: {name}: PSNR {_fmt(entry['psnr'], 2)} dB, SSIM {_fmt(entry['ssim'], 4)} "
+              f"over {len(scores)} views -> {out_root / 'metrics.json'}")
+    print(f"nefii relight: {len(cams)} views in {out_root / name}")
+    return 0
+
+
+def _fmt(x: float | None, digits: int) -> str:
+    return "n/a" if x is None else f"{x:.{digits}f}"
+
+
+def _mask(scene, v: int, coverage: np.ndarray) -> np.ndarray:
+    gt = scene.ground_truth
+    if gt is not None and gt.mask is not None:
+        return gt.mask[v].numpy()
+    if scene.masks is not None:
+        return scene.masks[v].numpy()
+    return coverage > 0.5
+
+
+def _check_same_map(gt: Relit | None, image: torch.Tensor) -> None:
+    """Warn when the dataset's own copy of the map differs from the file given (scored all the same)."""
+    if gt is None or gt.envmap is None:
+        return
+    mine = image.cpu()
+    if gt.envmap.shape != mine.shape or not torch.allclose(gt.envmap, mine, rtol=0.02, atol=1e-4):
+        print(f"nefii relight: warning: the map differs from the dataset's relight/{gt.name} environment; "
+              "scoring against its images all the same")

@@ -1,0 +1,148 @@
+"""A new environment to relight with: an equirectangular HDR file, turned about world +Z and exposed.
+
+Files: ``.exr`` (OpenEXR, through :mod:`nefii.io.exr`) and ``.hdr`` (Radiance RGBE, through
+OpenCV, which reads RLE and flat scanlines; imageio is not used: it is silently wrong for HDR).
+Both are read in the one mapping of :mod:`nefii.render.equirect` (row 0 is +Z, +X at the
+image centre, ``u = 0.5 - phi / 2 pi``).
+
+* ``rotate`` (degrees) turns the environment about world +Z, **counter-clockwise seen from
+  above**: a light at azimuth ``phi = atan2(y, x)`` moves to ``phi + rotate``, i.e. the image
+  content rolls left by ``rotate / 360`` of its width. It is applied exactly, to directions,
+  not by resampling the image: ``E_rot(w) = E(R_z(-rotate) w)``.
+* ``exposure`` (EV) scales radiance by ``2^EV`` in linear space.
+
+What is refused (:class:`InputError` naming the file, one line, exit 2): a missing file, an
+unknown suffix, an unreadable file, NaN or infinite values, a map that is black everywhere.
+What is only warned about: negative values (set to 0) and a map that is not 2:1 (lat-long maps
+are; any other size is still read in the same mapping, stretched).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from ..errors import InputError
+from ..io.exr import read_exr
+from ..render.envmap import EnvmapDistribution, build_envmap_distribution, envmap_lookup, pdf_envmap, sample_envmap
+
+ENVMAP_SUFFIXES = (".exr", ".hdr")
+SAMPLE_CHUNK_NUMBERS = 1 << 23
+"""CDF entries held at once while sampling directions (32 MiB in float32)"""
+
+
+# --------------------------------------------------------------------------- reading files
+
+
+def _read_hdr(path: Path) -> np.ndarray:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+    if img is None or img.ndim != 3 or img.shape[-1] != 3:
+        raise InputError(path, "not a readable Radiance HDR (RGBE) image")
+    return np.ascontiguousarray(img[..., ::-1], dtype=np.float32)   # OpenCV gives BGR
+
+
+def read_envmap(path: str | Path) -> Float[np.ndarray, "H W 3"]:
+    """The file's linear RGB radiance ``(H, W, 3)`` float32, checked (see the module docstring)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in ENVMAP_SUFFIXES:
+        raise InputError(path, f"unsupported environment map format '{path.suffix}': use .exr or .hdr")
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    img = read_exr(path) if suffix == ".exr" else _read_hdr(path)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, -1)
+    img = img[..., :3]                                   # an alpha channel carries no light
+    if img.shape[0] < 1 or img.shape[1] < 1:
+        raise InputError(path, f"empty image ({img.shape[1]}x{img.shape[0]})")
+    bad = int((~np.isfinite(img)).any(-1).sum())
+    if bad:
+        raise InputError(path, f"{bad} pixel(s) are NaN or infinite")
+    if (img < 0).any():
+        warnings.warn(f"{path}: {int((img < 0).any(-1).sum())} pixel(s) with negative radiance set to 0",
+                      stacklevel=2)
+        img = np.maximum(img, 0.0)
+    if not img.any():
+        raise InputError(path, "black everywhere: nothing to light with")
+    h, w = img.shape[:2]
+    if w != 2 * h:
+        warnings.warn(f"{path}: {w}x{h} is not a 2:1 lat-long map; read in the same mapping (stretched)",
+                      stacklevel=2)
+    return np.ascontiguousarray(img, dtype=np.float32)
+
+
+# --------------------------------------------------------------------------- the light
+
+
+def rotate_z(w: Float[Tensor, "*bs 3"], degrees: float) -> Float[Tensor, "*bs 3"]:
+    """Turn directions about world +Z by ``degrees``, counter-clockwise seen from above."""
+    if degrees == 0.0:
+        return w
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    x, y, z = w.unbind(-1)
+    return torch.stack([c * x - s * y, s * x + c * y, z], -1)
+
+
+@dataclass(frozen=True)
+class Environment:
+    """An equirectangular map as light: radiance, importance sampling and its pdf, turned by ``rotation``.
+
+    It is also a :class:`nefii.render.lights.LightSampler` (``sample(n, u)``, ``pdf(n, wi)``; ``n``
+    is ignored), so the one-bounce estimator can use it.
+    """
+
+    image: Float[Tensor, "H W 3"]
+    """linear radiance in the map's own frame, exposure applied"""
+    dist: EnvmapDistribution
+    """piecewise-constant 2D sampling tables of ``image`` (``nefii.render.envmap``)"""
+    rotation: float = 0.0
+    """degrees about world +Z, counter-clockwise seen from above"""
+
+    @staticmethod
+    def from_image(image: Float[Tensor, "H W 3"], rotation: float = 0.0) -> "Environment":
+        return Environment(image, build_envmap_distribution(image), float(rotation))
+
+    def radiance(self, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
+        """``E(w)``: the pixel ``R_z(-rotation) w`` falls in."""
+        return envmap_lookup(self.image, rotate_z(w, -self.rotation))
+
+    def sample_direction(self, u: Float[Tensor, "*bs 2"]) -> Float[Tensor, "*bs 3"]:
+        """A world direction with density :meth:`pdf_direction` (rotations keep solid angle).
+
+        ``sample_envmap`` holds a row of each CDF per sample (``H + W`` numbers), so large maps are
+        sampled in chunks of about ``SAMPLE_CHUNK_NUMBERS / (H + W)`` directions to bound memory.
+        """
+        H, W = self.dist.shape
+        flat = u.reshape(-1, 2)
+        step = max(256, SAMPLE_CHUNK_NUMBERS // (H + W + 2))
+        w = torch.cat([sample_envmap(self.dist, c) for c in flat.split(step)]) if len(flat) else flat.new_zeros(0, 3)
+        return rotate_z(w.reshape(*u.shape[:-1], 3), self.rotation)
+
+    def pdf_direction(self, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, " *bs"]:
+        return pdf_envmap(self.dist, rotate_z(w, -self.rotation))
+
+    # LightSampler protocol (the estimator's light strategy)
+    def sample(self, n: Tensor, u: Tensor) -> Tensor:
+        return self.sample_direction(u[..., :2])
+
+    def pdf(self, n: Tensor, wi: Tensor) -> Tensor:
+        return self.pdf_direction(wi)
+
+
+def load_environment(path: str | Path, rotate: float = 0.0, exposure: float = 0.0,
+                     device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> Environment:
+    """Read ``path`` (.exr or .hdr), scale by ``2^exposure``, turn by ``rotate`` degrees about +Z."""
+    if not (math.isfinite(rotate) and math.isfinite(exposure)):
+        raise InputError(None, f"--rotate {rotate} / --exposure {exposure}: must be finite numbers")
+    img = torch.from_numpy(read_envmap(path)).to(device=device, dtype=dtype) * (2.0 ** exposure)
+    if not bool(torch.isfinite(img).all()):
+        raise InputError(path, f"--exposure {exposure:g} makes the radiance overflow {dtype}")
+    return Environment.from_image(img, rotate)
