@@ -93,11 +93,12 @@ class FitConfig:
     """weight of the cache's own colour loss (Eq. 7)"""
     beta2: float = 1.0
     """weight of the background loss (Eq. 7)"""
-    loss: str = "l1"
-    """distance of the colour losses: ``l1`` (Eq. 7, 8) or ``l2`` (squared)"""
+    loss: str = "l2"
+    """distance of the colour losses: ``l1`` (Eq. 7, 8) or ``l2`` (squared; in the cpu preset because L1
+    treats sparse highlights as outliers and drifts roughness towards glossy; see docs/design.md)"""
     tonemap: str = "log1p"
     """colour space of the losses: ``none`` (linear, as Eq. 7) or ``log1p`` (keeps highlights from dominating)"""
-    smooth_albedo: float = 0.0
+    smooth_albedo: float = 0.005
     """weight of an L1 prior between the albedo at a point and at a jittered neighbour (0: off, as the paper)"""
     smooth_roughness: float = 0.0
     """the same for roughness (after the warm-up)"""
@@ -126,10 +127,10 @@ class FitConfig:
 
 
 PRESETS: dict[str, dict[str, Any]] = {
-    "cpu": {},
+    "cpu": {"material": {"encoding": {"max_resolution": 128}}},
     "paper": {
         "steps": 60000, "batch_pixels": 2048, "num_samples": 64, "lr": 5e-4, "lr_light": 5e-3,
-        "tonemap": "none", "roughness_warmup": 50 / 120,
+        "tonemap": "none", "loss": "l1", "smooth_albedo": 0.0, "roughness_warmup": 50 / 120,
         "material": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 8},
         "cache": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 4},
         "light": {"sharpness_max": 3000.0},
