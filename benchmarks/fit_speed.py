@@ -88,7 +88,7 @@ def main() -> None:
         ("Embree closest-hit rays/s (same machine, same mesh)", f"{closest / 1e6:.2f} M"),
         ("Embree any-hit rays/s", f"{anyhit / 1e6:.2f} M"),
         ("training samples/s over Embree closest-hit rate", f"{rays_s / closest:.3f}"),
-        (f"steps in 15 min at this rate", f"{steps_s * 900:.0f} (preset runs {cfg.steps})"),
+        ("steps in 15 min at this rate", f"{steps_s * 900:.0f} (preset runs {cfg.steps})"),
         ("peak resident memory", f"{peak_gib:.2f} GiB"),
     ]
     for k, v in rows:

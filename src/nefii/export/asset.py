@@ -26,7 +26,7 @@ from jaxtyping import Float
 from PIL import Image
 
 from ..fit.model import NeFIIModel
-from ..io.atomic import atomic_path, write_bytes_atomic, write_text_atomic
+from ..io.atomic import write_bytes_atomic, write_text_atomic
 from ..io.exr import write_exr
 from ..io.images import linear_to_srgb, to_uint8
 from .bake import BakedTextures, bake_textures

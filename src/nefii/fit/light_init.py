@@ -88,7 +88,6 @@ def sg_from_light(est: LightEstimate, num_lobes: int, albedo: float = 0.5, num_s
     wide lobes on a Fibonacci lattice carrying the rest; amplitudes conserve each direction's energy.
     (The NNLS solution is sparse, so a threshold relative to the mean would call most of a sky "peaks".)"""
     dirs, e = est.directions, est.energy.clamp_min(0.0)
-    D = dirs.shape[0]
     # radiant energy per direction: L_j dOmega_j = pi / albedo * e_j
     Ej = e * (math.pi / albedo)
     lum = Ej.mean(-1)

@@ -1,14 +1,14 @@
 """The two losses NeFII alternates between (paper Eq. 7 and Eq. 8)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
-from jaxtyping import Float
 from torch import Tensor
 
 from ..geometry.base import Geometry
 from .model import NeFIIModel, PathTraced, SurfacePoints, Transport, path_trace
+from .pixels import Pixels
 
 
 def tonemap(x: Tensor, kind: str) -> Tensor:
@@ -28,18 +28,6 @@ def distance(a: Tensor, b: Tensor, kind: str) -> Tensor:
     if kind == "l2":
         return (a - b).square().mean()
     raise ValueError(f"unknown loss {kind!r} (l1 | l2)")
-
-
-@dataclass(frozen=True)
-class ObservedBatch:
-    """Pixels of the training images: object pixels at their cached first hits, and background pixels."""
-
-    points: SurfacePoints
-    rgb: Float[Tensor, "B 3"]
-    """ground-truth linear colour of the object pixels"""
-    bg_dirs: Float[Tensor, "Bb 3"]
-    """view-ray directions of background pixels (they see the environment directly)"""
-    bg_rgb: Float[Tensor, "Bb 3"]
 
 
 @dataclass(frozen=True)
@@ -79,7 +67,7 @@ def smoothness(model: NeFIIModel, x: Tensor, material, prior: SmoothnessPrior, r
     return loss
 
 
-def observed_loss(model: NeFIIModel, geometry: Geometry, batch: ObservedBatch, num_samples: int,
+def observed_loss(model: NeFIIModel, geometry: Geometry, batch: Pixels, num_samples: int,
                   generator: torch.Generator | None, transport: Transport, roughness_override: float | None,
                   beta1: float = 1.0, beta2: float = 1.0, tone: str = "none",
                   prior: SmoothnessPrior = SmoothnessPrior(), kind: str = "l1") -> tuple[LossTerms, PathTraced]:
@@ -128,17 +116,15 @@ class SecondaryHitBuffer:
         return self._size
 
     def add(self, pts: SurfacePoints) -> None:
-        pts = SurfacePoints(*(t.detach() for t in (pts.position, pts.normal, pts.geometric_normal, pts.wo)))
         n = min(len(pts), self.capacity)
         if n == 0:
             return
-        pts = pts[slice(len(pts) - n, None)]
+        pts = pts[slice(len(pts) - n, None)].map(Tensor.detach)
         if self._items is None:
-            self._items = SurfacePoints(*(t.new_zeros(self.capacity, 3) for t in
-                                          (pts.position, pts.normal, pts.geometric_normal, pts.wo)))
+            self._items = pts.map(lambda t: t.new_zeros(self.capacity, 3))
         idx = (torch.arange(n, device=pts.position.device) + self._next) % self.capacity
-        for name in ("position", "normal", "geometric_normal", "wo"):
-            getattr(self._items, name)[idx] = getattr(pts, name)
+        for f in fields(SurfacePoints):
+            getattr(self._items, f.name)[idx] = getattr(pts, f.name)
         self._next = int((self._next + n) % self.capacity)
         self._size = min(self._size + n, self.capacity)
 
@@ -146,3 +132,16 @@ class SecondaryHitBuffer:
         assert self._items is not None and self._size > 0, "sample() from an empty buffer"
         idx = torch.randint(self._size, (n,), generator=generator, device=self._items.position.device)
         return self._items[idx]
+
+    def state_dict(self) -> dict | None:
+        if self._items is None:
+            return None
+        return {"next": self._next, "size": self._size, "items": {f.name: getattr(self._items, f.name)
+                                                                   for f in fields(SurfacePoints)}}
+
+    def load_state_dict(self, state: dict | None, device: torch.device) -> None:
+        if state is None:
+            self._items, self._next, self._size = None, 0, 0
+            return
+        self._items = SurfacePoints(**{k: v.to(device) for k, v in state["items"].items()})
+        self._next, self._size = int(state["next"]), int(state["size"])

@@ -7,7 +7,8 @@ rays of Eq. 8.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Callable
 
 import torch
 from jaxtyping import Float
@@ -40,13 +41,16 @@ class SurfacePoints:
     wo: Float[Tensor, "B 3"]
     """unit direction towards the viewer"""
 
+    def map(self, fn: Callable[[Tensor], Tensor]) -> "SurfacePoints":
+        """``fn`` applied to every field (indexing, detaching, moving, ...)."""
+        return SurfacePoints(fn(self.position), fn(self.normal), fn(self.geometric_normal), fn(self.wo))
+
     def __getitem__(self, idx: Tensor | slice) -> "SurfacePoints":
-        return SurfacePoints(self.position[idx], self.normal[idx], self.geometric_normal[idx], self.wo[idx])
+        return self.map(lambda t: t[idx])
 
     @staticmethod
     def cat(items: list["SurfacePoints"]) -> "SurfacePoints":
-        return SurfacePoints(*(torch.cat([getattr(p, f) for p in items]) for f in
-                               ("position", "normal", "geometric_normal", "wo")))
+        return SurfacePoints(*(torch.cat([getattr(p, f.name) for p in items]) for f in fields(SurfacePoints)))
 
     def __len__(self) -> int:
         return self.position.shape[0]

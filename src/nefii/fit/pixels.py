@@ -15,18 +15,24 @@ from .model import SurfacePoints
 
 
 @dataclass(frozen=True)
-class TrainingPixels:
-    """Object pixels at their first hits, and background pixels with their view directions."""
+class Pixels:
+    """Object pixels at their first hits with their colours, and background pixels with their view
+    directions and colours: all training pixels (:func:`first_hits`) or a batch of them (:meth:`select`)."""
 
     points: SurfacePoints
     rgb: Float[Tensor, "P 3"]
+    """linear colour of the object pixels"""
     bg_dirs: Float[Tensor, "Q 3"]
+    """view-ray directions of background pixels (they see the environment directly)"""
     bg_rgb: Float[Tensor, "Q 3"]
 
-    def to(self, device: torch.device | str) -> "TrainingPixels":
-        p = self.points
-        return TrainingPixels(SurfacePoints(*(t.to(device) for t in (p.position, p.normal, p.geometric_normal, p.wo))),
-                              self.rgb.to(device), self.bg_dirs.to(device), self.bg_rgb.to(device))
+    def select(self, obj: Tensor, bg: Tensor) -> "Pixels":
+        """The object pixels ``obj`` and background pixels ``bg`` (index tensors)."""
+        return Pixels(self.points[obj], self.rgb[obj], self.bg_dirs[bg], self.bg_rgb[bg])
+
+    def to(self, device: torch.device | str) -> "Pixels":
+        return Pixels(self.points.map(lambda t: t.to(device)), self.rgb.to(device), self.bg_dirs.to(device),
+                      self.bg_rgb.to(device))
 
 
 def view_rays(scene: SceneData, view: int) -> tuple[Float[Tensor, "H W 3"], Float[Tensor, "H W 3"]]:
@@ -35,7 +41,7 @@ def view_rays(scene: SceneData, view: int) -> tuple[Float[Tensor, "H W 3"], Floa
     return o.float(), d.float()
 
 
-def first_hits(scene: SceneData, geometry: Geometry) -> TrainingPixels:
+def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
     """Cast every pixel once. Object pixels: the ray hits the mesh (and the mask, if any, says object).
     Background pixels: no hit (and the mask, if any, says background), and only where the background
     is visible at all (not for transparent RGBA renders). Pixels where mask and geometry disagree
@@ -57,4 +63,4 @@ def first_hits(scene: SceneData, geometry: Geometry) -> TrainingPixels:
     points = SurfacePoints.cat(pts)
     if len(points) == 0:
         raise InputError(scene.root, "no training pixel sees the geometry: do the cameras, masks and mesh agree?")
-    return TrainingPixels(points, torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c))
+    return Pixels(points, torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c))

@@ -18,9 +18,9 @@ from ..geometry.base import Geometry
 from ..io.atomic import atomic_path
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
-from .losses import LossTerms, ObservedBatch, SecondaryHitBuffer, SmoothnessPrior, observed_loss, unobserved_loss
+from .losses import LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, unobserved_loss
 from .model import NeFIIModel, Transport
-from .pixels import TrainingPixels
+from .pixels import Pixels
 from .policies import Alternation, RoughnessWarmup
 
 
@@ -37,7 +37,7 @@ class StepLog:
 
 
 class Trainer:
-    def __init__(self, cfg: FitConfig, model: NeFIIModel, geometry: Geometry, pixels: TrainingPixels,
+    def __init__(self, cfg: FitConfig, model: NeFIIModel, geometry: Geometry, pixels: Pixels,
                  device: torch.device, dist: DistContext = DistContext()) -> None:
         self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
         self.dist = dist
@@ -61,12 +61,12 @@ class Trainer:
         self.step = 0
 
     # ---- one step
-    def _observed_batch(self) -> ObservedBatch:
+    def _observed_batch(self) -> Pixels:
         px, g = self.pixels, self.generator
         i = torch.randint(len(px.points), (self.cfg.batch_pixels,), generator=g, device=self.device)
         nb = min(self.cfg.background_pixels, len(px.bg_dirs))
         j = torch.randint(max(len(px.bg_dirs), 1), (nb,), generator=g, device=self.device)
-        return ObservedBatch(px.points[i], px.rgb[i], px.bg_dirs[j], px.bg_rgb[j])
+        return px.select(i, j)
 
     def train_step(self) -> StepLog:
         cfg, step = self.cfg, self.step
@@ -94,22 +94,17 @@ class Trainer:
 
     # ---- checkpoints
     def state_dict(self) -> dict:
-        items = self.buffer._items
         return {
             "step": self.step,
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "scheduler": self.scheduler.state_dict(),
             "generator": self.generator.get_state(),
-            "buffer": None if items is None else {
-                "next": self.buffer._next, "size": self.buffer._size,
-                "tensors": [items.position, items.normal, items.geometric_normal, items.wo]},
+            "buffer": self.buffer.state_dict(),
             "config": config_to_dict(self.cfg),
         }
 
     def load_state_dict(self, state: dict) -> None:
-        from .model import SurfacePoints
-
         self.step = int(state["step"])
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
@@ -118,10 +113,7 @@ class Trainer:
             self.generator.set_state(state["generator"])
         else:  # other ranks' streams are not saved: restart them deterministically from the step
             self.generator.manual_seed(self.cfg.seed + 1000 * self.dist.rank + 7919 * self.step)
-        b = state["buffer"]
-        if b is not None:
-            self.buffer._items = SurfacePoints(*(t.to(self.device) for t in b["tensors"]))
-            self.buffer._next, self.buffer._size = int(b["next"]), int(b["size"])
+        self.buffer.load_state_dict(state["buffer"], self.device)
 
     def save_checkpoint(self, folder: Path) -> Path | None:
         """Rank 0 writes ``step_XXXXXXX.pt`` atomically and keeps the last two."""
