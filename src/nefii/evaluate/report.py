@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.atomic import write_text_atomic
-from ..io.images import write_png
+from ..io.images import linear_to_srgb, write_png
 from .metrics import LPIPS_UNAVAILABLE
 from .table1 import METRIC_KEYS, PROTOCOLS
 
@@ -64,7 +64,6 @@ def write_grid(path: Path, rows: list[tuple[np.ndarray, np.ndarray]], srgb_rows:
         gt3 = gt if gt.ndim == 3 else np.repeat(gt[..., None], 3, -1)
         pr3 = pred if pred.ndim == 3 else np.repeat(pred[..., None], 3, -1)
         if is_colour:
-            from ..io.images import linear_to_srgb
             gt3, pr3 = linear_to_srgb(np.clip(gt3, 0, 1)), linear_to_srgb(np.clip(pr3, 0, 1))
         err = np.clip(np.abs(gt3 - pr3) * 4.0, 0, 1)
         tiles.append(np.concatenate([gt3, pr3, err], 1))

@@ -85,10 +85,10 @@ def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_sa
     # only directions that carry weight are traced and lit
     b_idx, s_idx = (samples.weight > 0).nonzero(as_tuple=True)
     w_live = wi[b_idx, s_idx]
-    empty = SurfacePoints(*(wi.new_zeros(0, 3) for _ in range(4)))
     if not transport.visibility:
         L_i = wi.new_zeros(wi.shape).index_put((b_idx, s_idx), model.env.radiance(w_live))
-        return PathTraced(combine(samples, material, pts.normal, L_i), material, empty)
+        no_hits = SurfacePoints(*(wi.new_zeros(0, 3) for _ in range(4)))
+        return PathTraced(combine(samples, material, pts.normal, L_i), material, no_hits)
 
     # ---- secondary rays
     rays = spawn_rays(pts.position[b_idx], pts.geometric_normal[b_idx], w_live, ray_offset * geometry.scale)
