@@ -270,3 +270,45 @@ def test_directions_are_drawn_without_gradient() -> None:
     torch.testing.assert_close(g_rough, f_rough, rtol=1e-12, atol=0.0)
     torch.testing.assert_close(g_sharp, f_sharp, rtol=1e-12, atol=0.0)
     assert float(g_rough.abs().sum()) > 0.0
+
+
+# --------------------------------------------------------------------------- two independent half estimates
+
+
+def test_the_mean_of_the_pair_is_the_full_estimate() -> None:
+    from nefii.render.estimator import combine_pair, mean_of_pair
+    n, wo, albedo, rough, lit, _ = shading_batch()
+    material = Material(albedo.detach(), rough.detach())
+    for N in (2, 5, 8):
+        samples = sample_mis_directions(n, wo, rough.detach(), lit, N, torch.Generator().manual_seed(3))
+        L_i = sg_eval(samples.wi, lit).detach()
+        full = combine(samples, material, n, L_i)
+        merged = mean_of_pair(combine_pair(samples, material, n, L_i), N)
+        torch.testing.assert_close(merged.diffuse, full.diffuse, rtol=1e-12, atol=1e-15)
+        torch.testing.assert_close(merged.specular, full.specular, rtol=1e-12, atol=1e-15)
+    with pytest.raises(ValueError, match="N >= 2"):
+        samples = sample_mis_directions(n, wo, rough.detach(), lit, 1, torch.Generator().manual_seed(3))
+        combine_pair(samples, material, n, sg_eval(samples.wi, lit).detach())
+
+
+def test_the_pair_loss_has_no_variance_term_where_the_square_of_one_estimate_does() -> None:
+    """At the right light level the expected gradient of the pair loss is zero (within its standard error);
+    the squared error of one noisy estimate pushes the light down, by its variance (d Var / d s = 2 Var / s)."""
+    from nefii.fit.losses import pair_distance
+    from nefii.render.estimator import combine_pair
+    env, B, N = environment(), NUM_POINTS, 4
+    n, wo = NORMAL.expand(B, 3), view(30.0).expand(B, 3)
+    material = Material(ALBEDO.expand(B, 3), torch.full((B,), 0.3, dtype=DTYPE))
+    samples = sample_mis_directions(n, wo, material.roughness, env, N, torch.Generator().manual_seed(77))
+    s = torch.ones((B, 1), dtype=DTYPE, requires_grad=True)       # one light scale per point: per-point gradients
+    pair = combine_pair(samples, material, n, s.unsqueeze(-1) * sg_eval(samples.wi, env))
+    full = 0.5 * (pair[0].rgb + pair[1].rgb)
+    target = full.detach().mean(0, keepdim=True).expand(B, 3)
+    g_pair, = torch.autograd.grad(pair_distance(pair[0].rgb, pair[1].rgb, target, "none") * B * 3, s, retain_graph=True)
+    g_sq, = torch.autograd.grad((full - target).square().mean() * B * 3, s)
+    m_pair, se_pair = mean_se(g_pair)
+    m_sq, se_sq = mean_se(g_sq)
+    variance = full.detach().var(0).sum()
+    assert abs(float(m_pair)) < Z_MAX * float(se_pair), (m_pair, se_pair)
+    assert float(m_sq) > Z_MAX * float(se_sq), (m_sq, se_sq)
+    torch.testing.assert_close(m_sq.squeeze(), 2 * variance, rtol=0.1, atol=0.0)

@@ -76,8 +76,6 @@ class HashGrid(nn.Module):
         self.register_buffer("level_size", torch.tensor(sizes, dtype=torch.long), persistent=False)
         self.register_buffer("offset", torch.tensor(offsets, dtype=torch.long), persistent=False)
         self.table = nn.Parameter(torch.empty(sum(sizes), features_per_level).uniform_(-init_scale, init_scale))
-        corners = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=torch.long)
-        self.register_buffer("corners", corners, persistent=False)
 
     @property
     def out_dim(self) -> int:
@@ -86,18 +84,23 @@ class HashGrid(nn.Module):
     def forward(self, x: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs E"]:
         bs = x.shape[:-1]
         x = x.reshape(-1, 3).clamp(0.0, 1.0)
-        pos = x.unsqueeze(1) * self.resolution.view(1, -1, 1)                  # (N, L, 3)
-        p0 = pos.floor()
-        frac = pos - p0                                                          # (N, L, 3)
-        p0 = p0.long()
-        c = p0.unsqueeze(2) + self.corners.view(1, 1, 8, 3)                      # (N, L, 8, 3)
-        res1 = (self.resolution.long() + 1).view(1, -1, 1)
-        dense_idx = c[..., 0] + res1 * (c[..., 1] + res1 * c[..., 2])
-        hashed = (c[..., 0] * _PRIMES[0]) ^ (c[..., 1] * _PRIMES[1]) ^ (c[..., 2] * _PRIMES[2])
-        idx = torch.where(self.dense.view(1, -1, 1), dense_idx, hashed) % self.level_size.view(1, -1, 1)
+        n, levels = x.shape[0], self.num_levels
+        res = self.resolution.view(1, -1, 1)
+        pos = x.unsqueeze(1) * res                                               # (N, L, 3)
+        p0 = torch.minimum(pos.floor(), res - 1)                                 # x = 1 stays in the last cell
+        frac = pos - p0
+        # the 8 corners are built separably: per axis the two cell ends, broadcast to (N, L, z, y, x)
+        lo = p0.long()
+        ix, iy, iz = (torch.stack([lo[..., a], lo[..., a] + 1], -1) for a in range(3))   # (N, L, 2) each
+        shape_x, shape_y, shape_z = (n, levels, 1, 1, 2), (n, levels, 1, 2, 1), (n, levels, 2, 1, 1)
+        res1 = (self.resolution.long() + 1).view(1, -1, 1, 1, 1)
+        dense_idx = ix.view(shape_x) + res1 * (iy.view(shape_y) + res1 * iz.view(shape_z))
+        hashed = ((ix * _PRIMES[0]).view(shape_x) ^ (iy * _PRIMES[1]).view(shape_y)
+                  ^ (iz * _PRIMES[2]).view(shape_z)) & (self.table_size - 1)
+        idx = torch.where(self.dense.view(1, -1, 1, 1, 1), dense_idx, hashed).flatten(2)
         idx = idx + self.offset.view(1, -1, 1)                                   # (N, L, 8)
         f = _Gather.apply(self.table, idx)                                       # (N, L, 8, F)
-        cw = self.corners.view(1, 1, 8, 3).to(x.dtype)
-        w = (cw * frac.unsqueeze(2) + (1 - cw) * (1 - frac.unsqueeze(2))).prod(-1)  # (N, L, 8)
+        wx, wy, wz = (torch.stack([1 - frac[..., a], frac[..., a]], -1) for a in range(3))
+        w = (wx.view(shape_x) * wy.view(shape_y) * wz.view(shape_z)).flatten(2)  # (N, L, 8)
         out = (f * w.unsqueeze(-1)).sum(2)                                       # (N, L, F)
         return out.reshape(*bs, self.out_dim)

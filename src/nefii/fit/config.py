@@ -86,16 +86,21 @@ class FitConfig:
     lr: float = 5e-3
     """Adam learning rate for the networks (paper 5e-4 at 8x512 MLPs; a hash grid wants ~1e-2)"""
     lr_light: float = 2e-2
-    """Adam learning rate for the SG parameters"""
+    """Adam learning rate for the environment's radiance (SG amplitudes, or the env-map grid)"""
+    lr_light_shape: float = 1e-3
+    """Adam learning rate for the SG axes and log-sharpness. Adam moves every parameter by about its
+    learning rate per step whatever the gradient's size, so at 2e-2 a sun lobe's axis random-walks ~1 degree
+    a step on noisy gradients and the sun found by the light initialisation is lost within 150 steps"""
     lr_decay: float = 0.1
     """learning rates fall exponentially to this fraction at the last step"""
     beta1: float = 1.0
     """weight of the cache's own colour loss (Eq. 7)"""
     beta2: float = 1.0
     """weight of the background loss (Eq. 7)"""
-    loss: str = "l2"
-    """distance of the colour losses: ``l1`` (Eq. 7, 8) or ``l2`` (squared; in the cpu preset because L1
-    treats sparse highlights as outliers and drifts roughness towards glossy; see docs/design.md)"""
+    loss: str = "l2_pair"
+    """distance of the colour losses: ``l1`` (Eq. 7, 8), ``l2`` (squared), or ``l2_pair`` (the product of the
+    errors of two independent half-sample estimates: unbiased for the squared error of the estimate's mean,
+    where l1/l2 of one noisy estimate also penalise its variance and so dim a sun; see docs/design.md)"""
     tonemap: str = "log1p"
     """colour space of the losses: ``none`` (linear, as Eq. 7) or ``log1p`` (keeps highlights from dominating)"""
     smooth_albedo: float = 0.005

@@ -19,7 +19,8 @@ from ..fields.environment import EnvmapEnvironment, SGEnvironment
 from ..fields.material import MaterialField
 from ..geometry.base import Geometry, Rays, spawn_rays
 from ..render.brdf import Material
-from ..render.estimator import RadianceEstimate, combine, sample_mis_directions
+from ..render.estimator import (DirectionSamples, RadianceEstimate, combine, combine_pair, mean_of_pair,
+                                sample_mis_directions)
 
 
 class NeFIIModel(nn.Module):
@@ -69,9 +70,21 @@ class Transport:
 @dataclass(frozen=True)
 class PathTraced:
     radiance: RadianceEstimate
+    """the estimate from all N estimator samples"""
+    pair: tuple[RadianceEstimate, RadianceEstimate] | None
+    """two independent estimates from either half of the samples (None when N < 2)"""
     material: Material
     secondary: SurfacePoints
     """secondary hits ``(x', n', -w)``: where the cache was queried"""
+
+
+def _estimate(samples: DirectionSamples, material: Material, n: Tensor, L_i: Tensor
+              ) -> tuple[RadianceEstimate, tuple[RadianceEstimate, RadianceEstimate] | None]:
+    N = samples.num_estimator_samples
+    if N < 2:
+        return combine(samples, material, n, L_i), None
+    pair = combine_pair(samples, material, n, L_i)
+    return mean_of_pair(pair, N), pair
 
 
 def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_samples: int,
@@ -88,7 +101,7 @@ def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_sa
     if not transport.visibility:
         L_i = wi.new_zeros(wi.shape).index_put((b_idx, s_idx), model.env.radiance(w_live))
         no_hits = SurfacePoints(*(wi.new_zeros(0, 3) for _ in range(4)))
-        return PathTraced(combine(samples, material, pts.normal, L_i), material, no_hits)
+        return PathTraced(*_estimate(samples, material, pts.normal, L_i), material, no_hits)
 
     # ---- secondary rays
     rays = spawn_rays(pts.position[b_idx], pts.geometric_normal[b_idx], w_live, ray_offset * geometry.scale)
@@ -101,4 +114,4 @@ def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_sa
     if transport.indirect and len(secondary):
         L_hit = model.cache(secondary.position, secondary.normal, secondary.wo)
         L_i = L_i.index_put((b_idx[hit.valid], s_idx[hit.valid]), L_hit)
-    return PathTraced(combine(samples, material, pts.normal, L_i), material, secondary)
+    return PathTraced(*_estimate(samples, material, pts.normal, L_i), material, secondary)

@@ -42,10 +42,14 @@ class Trainer:
         self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
         self.dist = dist
         self.params = list(self.model.parameters())
-        env_params = list(model.env.parameters())
-        env_ids = {id(p) for p in env_params}
+        shape = [p for name, p in model.env.named_parameters() if name in ("axis_raw", "log_sharpness")]
+        shape_ids = {id(p) for p in shape}
+        light = [p for p in model.env.parameters() if id(p) not in shape_ids]
+        env_ids = {id(p) for p in model.env.parameters()}
         nets = [p for p in model.parameters() if id(p) not in env_ids]
-        groups = [{"params": nets, "lr": cfg.lr}, {"params": env_params, "lr": cfg.lr_light}]
+        groups = [{"params": nets, "lr": cfg.lr}, {"params": light, "lr": cfg.lr_light}]
+        if shape:
+            groups.append({"params": shape, "lr": cfg.lr_light_shape})
         try:  # the fused kernel is ~5x faster on the CPU for the large hash-grid tables
             self.optimizer = torch.optim.Adam(groups, fused=True)
         except (RuntimeError, TypeError):

@@ -116,14 +116,50 @@ def sample_mis_directions(n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"],
     return DirectionSamples(wi=wi, weight=weight, wo=wo, num_estimator_samples=N)
 
 
-def combine(samples: DirectionSamples, material: Material, n: Float[Tensor, "*bs 3"],
-            L_i: Float[Tensor, "*bs S 3"], f0: float | Tensor = F0_DIELECTRIC) -> RadianceEstimate:
-    """The estimator's sum: ``1/N sum_S weight f_r L_i (wi . n)``, per lobe."""
+def _terms(samples: DirectionSamples, material: Material, n: Float[Tensor, "*bs 3"], L_i: Float[Tensor, "*bs S 3"],
+           f0: float | Tensor) -> tuple[Float[Tensor, "*bs S 3"], Float[Tensor, "*bs S 3"]]:
+    """Per-direction ``weight f_r L_i (wi . n)`` of the diffuse and specular lobes (not yet divided by N)."""
     m = Material(albedo=material.albedo.unsqueeze(-2), roughness=material.roughness.unsqueeze(-1))
     n_s = n.unsqueeze(-2)
     f = brdf_eval(m, n_s, samples.wo.unsqueeze(-2), samples.wi, f0)
-    c = (samples.weight * dot(n_s, samples.wi).clamp_min(0.0) / samples.num_estimator_samples).unsqueeze(-1)
-    return RadianceEstimate(diffuse=(f.diffuse * L_i * c).sum(-2), specular=(f.specular * L_i * c).sum(-2))
+    c = (samples.weight * dot(n_s, samples.wi).clamp_min(0.0)).unsqueeze(-1)
+    return f.diffuse * L_i * c, f.specular * L_i * c
+
+
+def combine(samples: DirectionSamples, material: Material, n: Float[Tensor, "*bs 3"],
+            L_i: Float[Tensor, "*bs S 3"], f0: float | Tensor = F0_DIELECTRIC) -> RadianceEstimate:
+    """The estimator's sum: ``1/N sum_S weight f_r L_i (wi . n)``, per lobe."""
+    diffuse, specular = _terms(samples, material, n, L_i, f0)
+    N = samples.num_estimator_samples
+    return RadianceEstimate(diffuse=diffuse.sum(-2) / N, specular=specular.sum(-2) / N)
+
+
+def combine_pair(samples: DirectionSamples, material: Material, n: Float[Tensor, "*bs 3"],
+                 L_i: Float[Tensor, "*bs S 3"], f0: float | Tensor = F0_DIELECTRIC
+                 ) -> tuple[RadianceEstimate, RadianceEstimate]:
+    """Two independent estimates from the first ``N // 2`` and the other ``N - N // 2`` estimator samples.
+
+    Each is unbiased on its own and their sample-count-weighted mean is :func:`combine`'s estimate.
+    Products of their errors estimate squared errors of the mean without the variance term that
+    the square of one noisy estimate carries (see ``nefii.fit.losses``). Needs ``N >= 2``.
+    """
+    N = samples.num_estimator_samples
+    if N < 2:
+        raise ValueError(f"two independent estimates need N >= 2 estimator samples, got {N}")
+    diffuse, specular = _terms(samples, material, n, L_i, f0)
+    first = (torch.arange(3 * N, device=n.device) % N) < N // 2              # estimator sample i owns i, N+i, 2N+i
+    halves = []
+    for mask, count in ((first, N // 2), (~first, N - N // 2)):
+        m = mask.to(diffuse.dtype).unsqueeze(-1)
+        halves.append(RadianceEstimate(diffuse=(diffuse * m).sum(-2) / count, specular=(specular * m).sum(-2) / count))
+    return halves[0], halves[1]
+
+
+def mean_of_pair(pair: tuple[RadianceEstimate, RadianceEstimate], num_samples: int) -> RadianceEstimate:
+    """:func:`combine`'s estimate from :func:`combine_pair`'s two halves (weighted by their sample counts)."""
+    a, b = pair
+    wa, wb = (num_samples // 2) / num_samples, (num_samples - num_samples // 2) / num_samples
+    return RadianceEstimate(diffuse=wa * a.diffuse + wb * b.diffuse, specular=wa * a.specular + wb * b.specular)
 
 
 def estimate_Lo(n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"], material: Material,
