@@ -4,9 +4,10 @@
                                  [--res 128] [--views 64] [--jobs 2] [--set key=value ...]
 
 Each (scene, config) is ``nefii fit`` (``cpu`` preset plus the ablation's switch) then
-``nefii eval``; runs live in ``benchmarks/.cache/runs`` and are reused when complete. Writes
-``benchmarks/results/quality.md`` with the masked Table 1 columns, wall time and peak memory of
-every fit, the machine and versions. ``--jobs 2`` runs two fits at once with one thread each
+``nefii eval``; runs live in ``benchmarks/.cache/runs`` and are reused when complete (each records
+the commit that fitted it). Writes ``benchmarks/results/quality.md`` with the masked Table 1 columns,
+wall time, peak memory and code version of every completed run of the default scenes and configs
+(so runs done at different times accumulate; those not run yet are listed), machine and versions. ``--jobs 2`` runs two fits at once with one thread each
 (two 2-thread processes on 2 cores slow each other down ~10x).
 """
 from __future__ import annotations
@@ -20,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CACHE, RESULTS, machine, scene, stamp  # noqa: E402
+from common import CACHE, RESULTS, code_version, machine, scene, stamp  # noqa: E402
 
 CONFIGS = {
     "full": [],
@@ -32,56 +33,82 @@ CONFIGS = {
 COLUMNS = ("roughness_mse", "albedo_psnr", "albedo_ssim", "specular_psnr", "specular_ssim", "rgb_psnr", "rgb_ssim")
 
 
-def run_one(data: Path, name: str, config: str, extra: list[str], threads: int, eval_spp: int) -> dict:
-    run = CACHE / "runs" / f"{name}_{config}"
+SCENES = ("bowl", "leaning", "cup", "corner")
+
+
+def run_dir(name: str, config: str) -> Path:
+    return CACHE / "runs" / f"{name}_{config}"
+
+
+def run_one(data: Path, name: str, config: str, extra: list[str], threads: int, eval_spp: int) -> None:
+    run = run_dir(name, config)
     metrics = run / "eval" / "metrics.json"
     if not metrics.exists():
         if not (run / "model.pt").exists():
+            (run / "benchmark.json").unlink(missing_ok=True)
             sets = [x for kv in [*CONFIGS[config], *extra, f"threads={threads}"] for x in ("--set", kv)]
             resume = ["--resume"] if (run / "checkpoints").exists() else []
             cmd = [sys.executable, "-m", "nefii.cli.main", "fit", str(data), "--out", str(run), "--quiet", *resume, *sets]
             proc = subprocess.run(cmd, capture_output=True, text=True)
             if proc.returncode != 0:
                 raise RuntimeError(f"fit {name}/{config} failed:\n{proc.stderr[-3000:]}")
+            (run / "benchmark.json").write_text(json.dumps({"code": code_version(), "extra": extra}) + "\n")
         subprocess.run([sys.executable, "-m", "nefii.cli.main", "eval", str(run), "--spp", str(eval_spp), "--quiet"],
                        check=True, capture_output=True)
-    m = json.loads(metrics.read_text())
+
+
+def read_row(name: str, config: str) -> dict | None:
+    """The completed run's figures, or None."""
+    run = run_dir(name, config)
+    if not (run / "eval" / "metrics.json").exists():
+        return None
+    m = json.loads((run / "eval" / "metrics.json").read_text())
     stats = json.loads((run / "fit_stats.json").read_text())
+    bench = json.loads((run / "benchmark.json").read_text()) if (run / "benchmark.json").exists() else {}
     return {"scene": name, "config": config, "fit_s": stats["wall_s_this_session"], "peak_gib": stats["peak_rss_gib"],
-            **m["masked"], "whole": m["whole_image"]}
+            "threads": stats.get("threads"), "code": bench.get("code", "unknown"), **m["masked"],
+            "whole": m["whole_image"]}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--scenes", nargs="+", default=["bowl", "leaning", "cup", "corner"])
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES))
     ap.add_argument("--configs", nargs="+", default=list(CONFIGS))
     ap.add_argument("--res", type=int, default=128)
     ap.add_argument("--views", type=int, default=64)
     ap.add_argument("--test-views", type=int, default=8)
     ap.add_argument("--eval-spp", type=int, default=64)
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=None, help="threads per fit (default: 1 with --jobs > 1, else all)")
     ap.add_argument("--set", dest="extra", action="append", default=[])
     args = ap.parse_args()
     datas = {s: scene(s, args.res, args.views, args.test_views) for s in args.scenes}
-    threads = 1 if args.jobs > 1 else 0
+    threads = args.threads if args.threads is not None else (1 if args.jobs > 1 else 0)
     jobs = [(datas[s], s, c) for s in args.scenes for c in args.configs]
     t0 = time.time()
     with ThreadPoolExecutor(args.jobs) as pool:
-        rows = list(pool.map(lambda j: run_one(*j, args.extra, threads, args.eval_spp), jobs))
+        list(pool.map(lambda j: run_one(*j, args.extra, threads, args.eval_spp), jobs))
+    order = list(dict.fromkeys([*SCENES, *args.scenes]))
+    found = {(s, c): read_row(s, c) for s in order for c in CONFIGS}
+    rows = [r for r in found.values() if r is not None]
+    missing = [f"{s}/{c}" for (s, c), r in found.items() if r is None]
     lines = [f"# quality ({stamp()})", "",
              f"Machine: {machine()}. Scenes {args.res}x{args.res}, {args.views} training views, "
              f"{args.test_views} test views; `cpu` preset{' + ' + ' '.join(args.extra) if args.extra else ''}; "
-             f"eval at {args.eval_spp} spp; {args.jobs} fits at a time ({threads or 'all'} thread(s) each). "
-             f"Total {(time.time() - t0) / 60:.1f} min.", "",
+             f"eval at {args.eval_spp} spp; {args.jobs} fits at a time ({threads or 'all'} thread(s) each), so "
+             f"fit times are ~1.5x those of a lone fit. This invocation: {len(jobs)} runs in "
+             f"{(time.time() - t0) / 60:.1f} min (cached runs reused); current code {code_version()}.", "",
              "Masked (object pixels) Table 1 columns; LPIPS n/a offline. Albedo aligned per view and channel "
              "by median(gt/pred).", "",
-             "| scene | config | " + " | ".join(COLUMNS) + " | rgb PSNR (whole image) | fit min | peak GiB |",
-             "|---|---|" + "---|" * (len(COLUMNS) + 3)]
+             "| scene | config | " + " | ".join(COLUMNS) + " | rgb PSNR (whole image) | fit min | peak GiB | code |",
+             "|---|---|" + "---|" * (len(COLUMNS) + 4)]
     for r in rows:
         vals = [("n/a" if r[k] is None else f"{r[k]:.4f}" if "mse" in k or "ssim" in k else f"{r[k]:.2f}")
                 for k in COLUMNS]
         lines.append(f"| {r['scene']} | {r['config']} | " + " | ".join(vals)
-                     + f" | {r['whole']['rgb_psnr']:.2f} | {r['fit_s'] / 60:.1f} | {r['peak_gib']:.2f} |")
+                     + f" | {r['whole']['rgb_psnr']:.2f} | {r['fit_s'] / 60:.1f} | {r['peak_gib']:.2f} | {r['code']} |")
+    if missing:
+        lines += ["", "Not run yet: " + ", ".join(missing) + "."]
     text = "\n".join(lines) + "\n"
     print(text)
     RESULTS.mkdir(exist_ok=True)
