@@ -289,3 +289,50 @@ def test_geometry_resumes_and_refuses_bad_input(tiny_scene, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "bad.ply" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "g2" / "sdf.pt").exists()
+
+
+# --------------------------------------------------------------------------- nefii fit --geometry GEO
+
+
+@pytest.fixture(scope="module")
+def geo_folder(tiny_scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("geo") / "geo"
+    assert _geometry(tiny_scene, out, "--from-mesh", str(tiny_scene / "mesh.ply"), "--set", "steps=200",
+                     "--set", "mesh_resolution=48") == 0
+    return out
+
+
+@pytest.mark.parametrize("mode", ["mesh", "sdf"])
+def test_fit_and_eval_on_a_geometry_folder(tiny_scene, geo_folder, tmp_path, mode):
+    from nefii.fit.outputs import load_run
+    run = tmp_path / "run"
+    assert main(["fit", str(tiny_scene), "--out", str(run), "--preset", "tiny", "--quiet", "--geometry",
+                 str(geo_folder), "--set", f"geometry_mode={mode}", "--set", "steps=10", "--set", "threads=1"]) == 0
+    fitted = load_run(run)
+    assert fitted.geometry.mode == mode and fitted.mesh == (geo_folder / "mesh.ply").resolve()
+    feats = fitted.model.material.features
+    assert (feats is not None) == (mode == "sdf")
+    if mode == "sdf":
+        # the fields see f: the material's first layer takes the hash-grid encoding plus f
+        enc = fitted.model.material.encoding.out_dim
+        assert fitted.model.material.net[0].in_features == enc + feats.dim
+        # and the SDF inside model.pt is the geometry stage's, frozen
+        sdf = load_sdf(geo_folder).sdf
+        u = torch.rand(64, 3) - 0.5
+        torch.testing.assert_close(feats.sdf(u)[1], sdf(u)[1])
+        assert not any(p.requires_grad for p in feats.parameters())
+    assert main(["eval", str(run), "--spp", "2", "--quiet"]) == 0
+    metrics = json.loads((run / "eval" / "metrics.json").read_text())
+    assert isinstance(metrics["masked"]["albedo_psnr"], float)
+
+
+def test_fit_geometry_input_errors(tiny_scene, geo_folder, tmp_path, capsys):
+    assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "a"), "--preset", "tiny", "--quiet",
+                 "--geometry", str(tmp_path), "--set", "steps=1"]) == 2
+    assert "not a nefii geometry folder" in capsys.readouterr().err
+    assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "b"), "--preset", "tiny", "--quiet",
+                 "--set", "geometry_mode=sdf", "--set", "steps=1"]) == 2
+    assert "needs --geometry" in capsys.readouterr().err
+    assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "c"), "--preset", "tiny", "--quiet",
+                 "--geometry", str(geo_folder), "--mesh", str(tiny_scene / "mesh.ply"), "--set", "steps=1"]) == 2
+    assert "not both" in capsys.readouterr().err

@@ -41,12 +41,12 @@ class Trainer:
                  device: torch.device, dist: DistContext = DistContext()) -> None:
         self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
         self.dist = dist
-        self.params = list(self.model.parameters())
+        self.params = [p for p in self.model.parameters() if p.requires_grad]   # a frozen SDF's are not
         shape = [p for name, p in model.env.named_parameters() if name in ("axis_raw", "log_sharpness")]
         shape_ids = {id(p) for p in shape}
         light = [p for p in model.env.parameters() if id(p) not in shape_ids]
         env_ids = {id(p) for p in model.env.parameters()}
-        nets = [p for p in model.parameters() if id(p) not in env_ids]
+        nets = [p for p in self.params if id(p) not in env_ids]
         groups = [{"params": nets, "lr": cfg.lr}, {"params": light, "lr": cfg.lr_light}]
         if shape:
             groups.append({"params": shape, "lr": cfg.lr_light_shape})
