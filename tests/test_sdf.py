@@ -336,3 +336,21 @@ def test_fit_geometry_input_errors(tiny_scene, geo_folder, tmp_path, capsys):
     assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "c"), "--preset", "tiny", "--quiet",
                  "--geometry", str(geo_folder), "--mesh", str(tiny_scene / "mesh.ply"), "--set", "steps=1"]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- a built-in scene, real size (slow)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("masks", ["on", "off"])
+def test_geometry_reconstructs_the_bowl(tmp_path, masks):
+    """``nefii geometry`` (cpu preset) on the bowl at 64x64, 32 views: the mesh within 2% (masks) or 5% (no
+    masks) of the bounding-box diagonal in chamfer distance."""
+    pytest.importorskip("mitsuba")
+    data = tmp_path / "bowl"
+    assert main(["synth", "bowl", "--out", str(data), "--res", "64", "--views", "32", "--test-views", "2",
+                 "--spp", "16"]) == 0
+    out = tmp_path / "geo"
+    assert main(["geometry", str(data), "--out", str(out), "--masks", masks, "--quiet"]) == 0
+    d = mesh_distance(trimesh.load(out / "mesh.ply", force="mesh"), trimesh.load(data / "mesh.ply", force="mesh"))
+    assert d.chamfer_rel < (0.02 if masks == "on" else 0.05), d
