@@ -163,6 +163,25 @@ def test_the_sdf_network_starts_as_an_exact_sphere():
     assert feat.shape == (500, 4)
 
 
+def test_coarse_to_fine_switches_hash_levels_on_in_order():
+    """With ``active`` levels only the coarse levels reach the MLP: perturbing a finer level's table
+    changes nothing until that level is on; ``None`` turns all on (what is saved)."""
+    net = bumpy_sdf()
+    grid = net.encoding
+    u = torch.rand(300, 3) * 1.6 - 0.8
+    net.set_active_levels(2.5)
+    torch.testing.assert_close(net.level_weights, torch.tensor([1.0, 1.0, 0.5, 0.0]))
+    before = net.sdf(u)
+    with torch.no_grad():
+        grid.table[int(grid.offset[3]):] += 1.0                       # level 3: off, so no effect
+    torch.testing.assert_close(net.sdf(u), before)
+    with torch.no_grad():
+        grid.table[int(grid.offset[2]):int(grid.offset[3])] += 1.0    # level 2: half on
+    assert not torch.allclose(net.sdf(u), before)
+    net.set_active_levels(None)
+    torch.testing.assert_close(net.level_weights, torch.ones(4))
+
+
 def test_marching_cubes_of_the_initial_sphere_is_that_sphere_wound_outwards():
     torch.manual_seed(0)
     net = SDFNetwork(HashGrid(4, 2, 12, 4, 16), 16, 1, 4, init_radius=0.5)

@@ -36,6 +36,12 @@ class GeometryConfig:
     """weight of the mask loss, binary cross-entropy of the rendered opacity (NeuS: 0.1)"""
     anneal_end: float = 0.2
     """fraction of the steps over which NeuS's cosine annealing goes from 0 to 1"""
+    coarse_to_fine: float = 0.0
+    """fraction of the steps over which the hash-grid levels are switched on one after another,
+    from ``start_levels`` (Neuralangelo's coarse-to-fine; 0: all levels from the start). The
+    coarse levels settle the topology (a bowl's hollow) before the fine ones add detail"""
+    start_levels: int = 4
+    """hash-grid levels active at the first step when ``coarse_to_fine`` > 0"""
     init_radius: float = 0.5
     """radius of the sphere the SDF starts as, in normalised units"""
     feature_dim: int = 16
@@ -59,8 +65,8 @@ class GeometryConfig:
 
 
 GEOMETRY_PRESETS: dict[str, dict[str, Any]] = {
-    "cpu": {"batch_rays": 256, "samples": 16, "importance": 16,
-            "sdf": {"encoding": {"levels": 10, "log2_table_size": 16, "max_resolution": 256}, "hidden": 64, "layers": 1},
+    "cpu": {"batch_rays": 256, "samples": 16, "importance": 16, "coarse_to_fine": 0.5,
+            "sdf": {"encoding": {"levels": 10, "log2_table_size": 16, "max_resolution": 128}, "hidden": 64, "layers": 1},
             "color": {"hidden": 64, "layers": 2}},
     "paper": {
         "steps": 300000, "batch_rays": 512, "samples": 64, "importance": 64, "importance_rounds": 4,
@@ -70,6 +76,7 @@ GEOMETRY_PRESETS: dict[str, dict[str, Any]] = {
     },
     "tiny": {
         "steps": 40, "batch_rays": 64, "samples": 8, "importance": 8, "importance_rounds": 1, "background_samples": 4,
+        "coarse_to_fine": 0.5, "start_levels": 2,
         "feature_dim": 4, "mesh_resolution": 32, "from_mesh_points": 1024, "checkpoint_every_s": 60.0,
         "sdf": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
         "color": {"hidden": 16, "layers": 1},

@@ -26,6 +26,8 @@ class SDFNetwork(nn.Module):
         super().__init__()
         self.encoding, self.feature_dim, self.init_radius = encoding, feature_dim, init_radius
         self.hashed = isinstance(encoding, HashGrid)
+        levels = encoding.num_levels if self.hashed else 1
+        self.register_buffer("level_weights", torch.ones(levels), persistent=False)
         self.net = mlp(encoding.out_dim + 3, 1 + feature_dim, hidden, layers)
         with torch.no_grad():
             last = self.net[-1]
@@ -34,9 +36,17 @@ class SDFNetwork(nn.Module):
 
     def forward(self, u: Float[Tensor, "*bs 3"]) -> tuple[Float[Tensor, " *bs"], Float[Tensor, "*bs F"]]:
         h = self.encoding(0.5 * (u + 1.0) if self.hashed else u)
+        if self.hashed:
+            h = (h.unflatten(-1, (len(self.level_weights), -1)) * self.level_weights.unsqueeze(-1)).flatten(-2)
         out = self.net(torch.cat([h, u], -1))
         sdf = u.norm(dim=-1) - self.init_radius + out[..., 0]
         return sdf, out[..., 1:]
+
+    def set_active_levels(self, active: float | None) -> None:
+        """Coarse to fine (Neuralangelo): hash-grid level ``l`` is weighted ``clamp(active - l, 0, 1)``,
+        so only the coarse levels shape the surface at first; ``None`` turns every level on."""
+        levels = torch.arange(len(self.level_weights), dtype=self.level_weights.dtype, device=self.level_weights.device)
+        self.level_weights.copy_(torch.ones_like(levels) if active is None else (active - levels).clamp(0.0, 1.0))
 
     def sdf(self, u: Float[Tensor, "*bs 3"]) -> Float[Tensor, " *bs"]:
         return self(u)[0]

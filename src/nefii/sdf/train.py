@@ -72,7 +72,17 @@ class GeometryTrainer:
         self.generator = torch.Generator(device=device).manual_seed(cfg.seed)
         self.step = 0
 
+    def active_levels(self, step: int) -> float | None:
+        """Hash-grid levels in use at ``step`` (see ``GeometryConfig.coarse_to_fine``); None: all."""
+        cfg = self.cfg
+        levels = len(self.model.sdf.level_weights)
+        end = cfg.coarse_to_fine * cfg.steps
+        if end <= 0 or step >= end:
+            return None
+        return cfg.start_levels + (levels - cfg.start_levels) * step / end
+
     def train_step(self) -> GeometryLoss:
+        self.model.sdf.set_active_levels(self.active_levels(self.step))
         terms = self.objective.loss(self.model, self.step, self.generator)
         if not bool(torch.isfinite(terms.total)):
             raise FloatingPointError(f"step {self.step}: geometry loss is not finite ({terms.total.item()})")
@@ -117,4 +127,5 @@ class GeometryTrainer:
                 save_checkpoint(folder, self.step, self.state_dict())
                 last = time.monotonic()
         bar.close()
+        self.model.sdf.set_active_levels(None)
         save_checkpoint(folder, self.step, self.state_dict())
