@@ -14,7 +14,6 @@ from ..evaluate.report import tonemap_display, write_grid, write_metrics
 from ..evaluate.table1 import ViewArrays, mean_scores, view_scores
 from ..fit.model import Transport
 from ..fit.outputs import ENVMAP_SIZE, load_run
-from ..geometry import MeshGeometry
 from ..io.atomic import atomic_dir
 from ..io.exr import write_exr
 from ..io.images import write_png
@@ -42,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     fitted = load_run(args.run, device)
     set_threads(fitted.config.threads)
     scene = load_scene(args.data or fitted.data, "test")
-    geometry = MeshGeometry.from_file(fitted.mesh)
+    geometry = fitted.open_geometry()
     gt = scene.ground_truth
     transport = Transport(indirect=fitted.config.indirect, visibility=fitted.config.visibility)
     g = torch.Generator(device=device).manual_seed(args.seed)

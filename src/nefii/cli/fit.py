@@ -13,6 +13,7 @@ from ..data import load_scene
 from ..errors import InputError
 from ..fit.build import build_model
 from ..fit.config import PRESETS, FitConfig, resolve_config
+from ..fit.geometry_source import resolve_source
 from ..fit.distributed import DistContext, init_distributed, local_device, parameter_checksums, shutdown
 from ..fit.light_init import estimate_light, set_sg_parameters, sg_from_light
 from ..fit.logging import RunLogger
@@ -31,6 +32,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="run folder to write")
     p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="starting configuration")
     p.add_argument("--mesh", type=Path, default=None, help="frozen geometry (default: the scene's mesh.ply)")
+    p.add_argument("--geometry", type=Path, default=None, metavar="GEO",
+                   help="the output of nefii geometry instead of a mesh; --set geometry_mode=mesh|sdf says how to use it")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
     p.add_argument("--device", default="auto", help="cpu | cuda | cuda:N | auto")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -70,18 +73,18 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
     threads = set_threads(cfg.threads)
     say = print if ctx.is_main else (lambda *a, **k: None)
     scene = load_scene(args.data, "train")
-    mesh_path = args.mesh or scene.mesh_path
-    if mesh_path is None:
-        raise InputError(args.data, "no geometry: the dataset has no mesh.ply; pass --mesh PATH")
-    geometry = MeshGeometry.from_file(mesh_path)
+    source = resolve_source(args.mesh, args.geometry, scene.mesh_path, cfg.geometry_mode, args.data)
+    geometry, features = source.open()
     box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
+    what = f"mesh {source.mesh} ({len(geometry.faces)} triangles)" if isinstance(geometry, MeshGeometry) else \
+        f"SDF of {source.folder}, sphere-traced, feature vector of {features.dim if features else 0}"
     say(f"nefii fit: {len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
-        f"mesh {mesh_path} ({len(geometry.faces)} triangles); device {device}, {threads} threads"
+        f"{what}; device {device}, {threads} threads"
         + (f", {ctx.world_size} processes" if ctx.active else ""))
     pixels = first_hits(scene, geometry).to(device)
     say(f"nefii fit: {len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels")
 
-    model = build_model(cfg, box)
+    model = build_model(cfg, box, features)
     if not args.resume and cfg.light.kind == "sg" and cfg.light.init == "shading":
         pts = pixels.points
         est = estimate_light(pts.position, pts.normal, pts.geometric_normal, pixels.rgb, geometry,
@@ -125,7 +128,7 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
             return 1
         say(f"nefii fit: the {ctx.world_size} process replicas are in sync (parameter sum {sums[0]:.6g})")
     if ctx.is_main:
-        write_outputs(out, cfg, trainer.model, box, Path(args.data).resolve(), Path(mesh_path).resolve())
+        write_outputs(out, cfg, trainer.model, box, Path(args.data).resolve(), source)
         wall = time.time() - t0
         stats = {"steps": trainer.step, "steps_this_session": trainer.step - step0, "wall_s_this_session": wall,
                  "steps_per_s": (trainer.step - step0) / max(wall, 1e-9), "processes": ctx.world_size,

@@ -11,7 +11,7 @@ from importlib import import_module
 
 from ..errors import InputError
 
-VERBS = ("synth", "fit", "eval", "relight", "export", "view", "demo")
+VERBS = ("synth", "geometry", "fit", "eval", "relight", "export", "view", "demo")
 """verb modules under nefii.cli, in the order ``nefii --help`` lists them"""
 
 

@@ -25,7 +25,6 @@ from ..data.scene import Relit
 from ..errors import InputError
 from ..evaluate.report import write_grid
 from ..fit.outputs import load_run
-from ..geometry import MeshGeometry
 from ..io.atomic import atomic_dir, write_text_atomic
 from ..io.exr import write_exr
 from ..io.images import write_png
@@ -91,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     _warn(caught)
     fitted = load_run(args.run, device)
     set_threads(fitted.config.threads)
-    geometry = MeshGeometry.from_file(fitted.mesh)
+    geometry = fitted.open_geometry()
     name = env_name(args.envmap, args.rotate, args.exposure)
 
     # ---- the views, and the ground truth for this environment if the dataset has it

@@ -7,6 +7,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from .encodings import FourierFeatures, HashGrid
+from .features import FeatureField
 from .mlp import mlp
 
 
@@ -17,18 +18,18 @@ class RadianceCache(nn.Module):
     """
 
     def __init__(self, encoding: HashGrid | FourierFeatures, dir_freqs: int, hidden: int, layers: int,
-                 box: tuple[Tensor, Tensor], feature_dim: int = 0) -> None:
+                 box: tuple[Tensor, Tensor], features: FeatureField | None = None) -> None:
         super().__init__()
-        self.encoding = encoding
+        self.encoding, self.features = encoding, features
         self.dir_encoding = FourierFeatures(3, dir_freqs)
-        in_dim = encoding.out_dim + 2 * self.dir_encoding.out_dim + feature_dim
+        in_dim = encoding.out_dim + 2 * self.dir_encoding.out_dim + (features.dim if features is not None else 0)
         self.net = mlp(in_dim, 3, hidden, layers)
         self.register_buffer("box_lo", torch.as_tensor(box[0], dtype=torch.float32))
         self.register_buffer("box_size", torch.as_tensor(box[1], dtype=torch.float32) - self.box_lo)
 
-    def forward(self, x: Float[Tensor, "*bs 3"], n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"],
-                features: Float[Tensor, "*bs F"] | None = None) -> Float[Tensor, "*bs 3"]:
+    def forward(self, x: Float[Tensor, "*bs 3"], n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"]
+                ) -> Float[Tensor, "*bs 3"]:
         parts = [self.encoding((x - self.box_lo) / self.box_size), self.dir_encoding(n), self.dir_encoding(wo)]
-        if features is not None:
-            parts.append(features)
+        if self.features is not None:
+            parts.append(self.features(x))
         return nn.functional.softplus(self.net(torch.cat(parts, -1)))

@@ -7,11 +7,13 @@ from torch import Tensor, nn
 
 from ..render.brdf import Material, roughness_from_logit
 from .encodings import FourierFeatures, HashGrid
+from .features import FeatureField
 from .mlp import mlp
 
 
 class MaterialField(nn.Module):
-    """Diffuse albedo ``sigmoid`` and roughness ``0.911 sigmoid + 0.089`` at world points.
+    """Diffuse albedo ``sigmoid`` and roughness ``0.911 sigmoid + 0.089`` at world points
+    (with ``features``, the frozen SDF's feature vector at the point is an input too).
 
     ``box`` = (lo, hi) corners of the scene's bounding box: points are mapped into ``[0,1]^3``
     before encoding. ``roughness_override`` (the warm-up policy's constant) replaces the
@@ -19,19 +21,18 @@ class MaterialField(nn.Module):
     """
 
     def __init__(self, encoding: HashGrid | FourierFeatures, hidden: int, layers: int,
-                 box: tuple[Tensor, Tensor], feature_dim: int = 0) -> None:
+                 box: tuple[Tensor, Tensor], features: FeatureField | None = None) -> None:
         super().__init__()
-        self.encoding = encoding
-        self.net = mlp(encoding.out_dim + feature_dim, 4, hidden, layers)
+        self.encoding, self.features = encoding, features
+        self.net = mlp(encoding.out_dim + (features.dim if features is not None else 0), 4, hidden, layers)
         self.register_buffer("box_lo", torch.as_tensor(box[0], dtype=torch.float32))
         self.register_buffer("box_size", torch.as_tensor(box[1], dtype=torch.float32) - self.box_lo)
 
-    def forward(self, x: Float[Tensor, "*bs 3"], features: Float[Tensor, "*bs F"] | None = None,
-                roughness_override: float | None = None) -> Material:
+    def forward(self, x: Float[Tensor, "*bs 3"], roughness_override: float | None = None) -> Material:
         u = (x - self.box_lo) / self.box_size
         h = self.encoding(u)
-        if features is not None:
-            h = torch.cat([h, features], -1)
+        if self.features is not None:
+            h = torch.cat([h, self.features(x)], -1)
         out = self.net(h)
         albedo = torch.sigmoid(out[..., :3])
         if roughness_override is None:

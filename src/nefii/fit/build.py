@@ -7,6 +7,7 @@ from torch import Tensor
 from ..fields.cache import RadianceCache
 from ..fields.encodings import FourierFeatures, HashGrid
 from ..fields.environment import EnvmapEnvironment, SGEnvironment
+from ..fields.features import FeatureField
 from ..fields.material import MaterialField
 from .config import EncodingConfig, FitConfig
 from .model import NeFIIModel
@@ -21,15 +22,17 @@ def make_encoding(cfg: EncodingConfig) -> HashGrid | FourierFeatures:
     raise ValueError(f"unknown encoding kind {cfg.kind!r} (hashgrid | fourier)")
 
 
-def build_model(cfg: FitConfig, box: tuple[Tensor, Tensor]) -> NeFIIModel:
-    """Fields over the scene box (padded by 5% so that points on the box faces stay inside)."""
+def build_model(cfg: FitConfig, box: tuple[Tensor, Tensor], features: FeatureField | None = None) -> NeFIIModel:
+    """Fields over the scene box (padded by 5% so that points on the box faces stay inside); with
+    ``features`` (a frozen SDF's), the material and the cache take its feature vector as input too."""
     lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in box)
     pad = 0.05 * (hi - lo).max()
     box = (lo - pad, hi + pad)
     torch.manual_seed(cfg.seed)
-    material = MaterialField(make_encoding(cfg.material.encoding), cfg.material.hidden, cfg.material.layers, box)
+    material = MaterialField(make_encoding(cfg.material.encoding), cfg.material.hidden, cfg.material.layers, box,
+                             features)
     cache = RadianceCache(make_encoding(cfg.cache.encoding), cfg.cache_dir_freqs, cfg.cache.hidden,
-                          cfg.cache.layers, box)
+                          cfg.cache.layers, box, features)
     if cfg.light.kind == "sg":
         env = SGEnvironment(cfg.light.num_lobes, cfg.light.sharpness_min, cfg.light.sharpness_max,
                             cfg.light.init_radiance, seed=cfg.seed)

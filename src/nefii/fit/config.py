@@ -115,6 +115,9 @@ class FitConfig:
     """secondary-ray origin offset, as a fraction of the scene's bounding-box diagonal"""
     seed: int = 0
     """seeds parameters, pixel batches and direction samples"""
+    geometry_mode: str = "mesh"
+    """with ``nefii fit --geometry GEO``: ``mesh`` ray-casts GEO/mesh.ply (fast); ``sdf`` sphere-traces GEO's
+    SDF and feeds its feature vector f to the material and the cache, as the paper does"""
     material: NetworkConfig = field(default_factory=NetworkConfig)
     """material field M"""
     cache: NetworkConfig = field(default_factory=NetworkConfig)

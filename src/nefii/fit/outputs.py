@@ -1,7 +1,8 @@
 """What a fit leaves in its run folder, and how eval/relight/export read it back.
 
     RUN/config.json        the resolved FitConfig (read back through the same dataclasses)
-    RUN/model.pt           fields' weights + config + scene box + data and mesh paths
+    RUN/model.pt           fields' weights + config + scene box + data path + geometry source (and, in
+                           sdf mode, the frozen SDF that supplies the feature vector f)
     RUN/envmap.exr         the recovered SGs as an equirectangular image (docs/design.md mapping)
     RUN/sg.npy             (K, 7) float32: axis xyz, sharpness, amplitude rgb (SG light only)
     RUN/checkpoints/       resumable training state (step_XXXXXXX.pt, atomic)
@@ -12,6 +13,7 @@ textures.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,12 +24,14 @@ import torch
 
 from ..errors import InputError
 from ..io.atomic import atomic_path, write_text_atomic
-from ..io.exr import write_exr
 from ..fields.environment import SGEnvironment
+from ..fields.features import FeatureField
+from ..io.exr import write_exr
 from ..render.brdf import Material
 from ..render.sg import SGMixture
-from .build import build_model
+from .build import build_model, make_encoding
 from .config import FitConfig, config_from_dict, config_to_dict
+from .geometry_source import GeometrySource
 from .model import NeFIIModel
 
 ENVMAP_SIZE = (256, 512)
@@ -41,7 +45,13 @@ class FittedRun:
     data: Path
     """the dataset the run was fitted on"""
     mesh: Path
-    """the frozen geometry"""
+    """the frozen geometry's triangle mesh"""
+    geometry: GeometrySource
+    """where the geometry came from (mesh or a nefii geometry folder, and how it is cast)"""
+
+    def open_geometry(self):
+        """The run's geometry for rays (sphere-traced SDF in ``sdf`` mode, else the mesh)."""
+        return self.geometry.open()[0]
 
 
 def sg_array(sg: SGMixture) -> np.ndarray:
@@ -64,11 +74,15 @@ def read_config(folder: Path) -> FitConfig:
 
 
 def write_outputs(folder: Path, cfg: FitConfig, model: NeFIIModel, box: tuple[torch.Tensor, torch.Tensor],
-                  data: Path, mesh: Path) -> None:
-    """model.pt, envmap.exr, sg.npy (each written atomically)."""
+                  data: Path, source: GeometrySource) -> None:
+    """model.pt, envmap.exr, sg.npy (each written atomically). model.pt is self-contained: with an SDF's
+    feature field, the frozen SDF's weights and its configuration are in it too."""
+    feats = model.material.features
+    sdf_blob = None if feats is None else {"config": dataclasses.asdict(source_config(source)),
+                                           "center": feats.center.tolist(), "radius": feats.radius}
     with atomic_path(folder / "model.pt") as tmp:
-        torch.save({"config": config_to_dict(cfg), "state": model.state_dict(),
-                    "box": [b.cpu() for b in box], "data": str(data), "mesh": str(mesh)}, tmp)
+        torch.save({"config": config_to_dict(cfg), "state": model.state_dict(), "box": [b.cpu() for b in box],
+                    "data": str(data), "mesh": str(source.mesh), "geometry": source.to_dict(), "sdf": sdf_blob}, tmp)
     with torch.no_grad():
         write_exr(folder / "envmap.exr", model.env.to_equirect(*ENVMAP_SIZE).cpu().numpy())
         if isinstance(model.env, SGEnvironment):
@@ -84,11 +98,28 @@ def load_run(folder: str | Path, device: torch.device | str = "cpu") -> FittedRu
     try:
         blob = torch.load(path, map_location="cpu", weights_only=False)
         cfg = config_from_dict(blob["config"])
-        model = build_model(cfg, tuple(blob["box"]))
+        features = None
+        if blob.get("sdf") is not None:
+            from ..sdf.config import geometry_config_from_dict
+            from ..sdf.networks import SDFNetwork
+            gcfg = geometry_config_from_dict(blob["sdf"]["config"])
+            net = SDFNetwork(make_encoding(gcfg.sdf.encoding), gcfg.sdf.hidden, gcfg.sdf.layers, gcfg.feature_dim,
+                             gcfg.init_radius)
+            features = FeatureField(net, tuple(blob["sdf"]["center"]), blob["sdf"]["radius"])
+        model = build_model(cfg, tuple(blob["box"]), features)
         model.load_state_dict(blob["state"])
+        source = GeometrySource.from_dict(blob["geometry"]) if "geometry" in blob else \
+            GeometrySource("mesh", Path(blob["mesh"]))
     except Exception as e:
         raise InputError(path, f"not a readable nefii model ({type(e).__name__}: {e})") from None
-    return FittedRun(folder, cfg, model.to(device).eval(), Path(blob["data"]), Path(blob["mesh"]))
+    return FittedRun(folder, cfg, model.to(device).eval(), Path(blob["data"]), Path(blob["mesh"]), source)
+
+
+def source_config(source: GeometrySource):
+    """The geometry stage's configuration of an ``sdf``-mode source."""
+    from ..sdf.outputs import load_sdf
+    assert source.folder is not None
+    return load_sdf(source.folder).config
 
 
 @torch.no_grad()

@@ -15,7 +15,7 @@ import torch
 from tqdm import tqdm
 
 from ..geometry.base import Geometry
-from ..io.atomic import atomic_path
+from ..io.checkpoints import latest_checkpoint, save_checkpoint
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
 from .losses import LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, unobserved_loss
@@ -41,12 +41,12 @@ class Trainer:
                  device: torch.device, dist: DistContext = DistContext()) -> None:
         self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
         self.dist = dist
-        self.params = list(self.model.parameters())
+        self.params = [p for p in self.model.parameters() if p.requires_grad]   # a frozen SDF's are not
         shape = [p for name, p in model.env.named_parameters() if name in ("axis_raw", "log_sharpness")]
         shape_ids = {id(p) for p in shape}
         light = [p for p in model.env.parameters() if id(p) not in shape_ids]
         env_ids = {id(p) for p in model.env.parameters()}
-        nets = [p for p in model.parameters() if id(p) not in env_ids]
+        nets = [p for p in self.params if id(p) not in env_ids]
         groups = [{"params": nets, "lr": cfg.lr}, {"params": light, "lr": cfg.lr_light}]
         if shape:
             groups.append({"params": shape, "lr": cfg.lr_light_shape})
@@ -123,20 +123,11 @@ class Trainer:
         """Rank 0 writes ``step_XXXXXXX.pt`` atomically and keeps the last two."""
         if not self.dist.is_main:
             return None
-        path = folder / f"step_{self.step:07d}.pt"
-        with atomic_path(path) as tmp:
-            torch.save(self.state_dict(), tmp)
-        for old in sorted(folder.glob("step_*.pt"))[:-2]:  # keep the last two
-            old.unlink()
-        return path
+        return save_checkpoint(folder, self.step, self.state_dict())
 
     @staticmethod
     def latest_checkpoint(folder: Path) -> Path | None:
-        """The newest complete checkpoint; temporaries of a write that was killed are removed."""
-        for stale in folder.glob(".step_*"):
-            stale.unlink(missing_ok=True)
-        found = sorted(folder.glob("step_*.pt"))
-        return found[-1] if found else None
+        return latest_checkpoint(folder)
 
     # ---- the loop
     def fit(self, checkpoint_dir: Path, log=None, progress: bool = True, preview=None) -> None:

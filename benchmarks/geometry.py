@@ -1,0 +1,129 @@
+"""The geometry stage on the built-in scenes: reconstructed mesh against the scene's mesh.ply, and the
+fit's albedo / roughness with reconstructed against ground-truth geometry.
+
+    python benchmarks/geometry.py [--scenes bowl cup ...] [--res 64] [--views 64] [--masks on off]
+                                  [--fits [SCENE ...]] [--fit-res 128] [--jobs 2] [--set key=value ...]
+
+For each scene (and each masks setting) runs ``nefii geometry`` (``cpu`` preset) and measures the
+chamfer distance (relative to the scene's bounding-box diagonal) and normal angle error against
+``mesh.ply``, wall time and peak memory. With ``--fits``, also ``nefii fit`` + ``nefii eval`` on
+the reconstructed geometry (mesh mode) beside the ground-truth-geometry fit that
+``benchmarks/quality.py`` caches. Runs live in ``benchmarks/.cache/geometry`` and are reused.
+Writes ``benchmarks/results/geometry.md``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import trimesh
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import CACHE, RESULTS, code_version, machine, scene, stamp  # noqa: E402
+
+from nefii.sdf.metrics import mesh_distance  # noqa: E402
+
+
+def nefii(*args: str) -> None:
+    proc = subprocess.run([sys.executable, "-m", "nefii.cli.main", *args], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"nefii {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
+
+
+def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[str]) -> dict:
+    out = CACHE / "geometry" / f"{name}_masks_{masks}"
+    if not (out / "geometry_stats.json").exists():
+        sets = [x for kv in [*extra, f"threads={threads}"] for x in ("--set", kv)]
+        resume = ["--resume"] if (out / "checkpoints").exists() else []
+        nefii("geometry", str(data), "--out", str(out), "--masks", masks, "--quiet", *resume, *sets)
+    stats = json.loads((out / "geometry_stats.json").read_text())
+    d = mesh_distance(trimesh.load(out / "mesh.ply", force="mesh"), trimesh.load(data / "mesh.ply", force="mesh"))
+    return {"scene": name, "masks": masks, "chamfer_rel": d.chamfer_rel, "normal_deg": d.normal_deg,
+            "wall_min": stats["wall_s"] / 60, "peak_gib": stats["peak_rss_gib"], "folder": out, "code": code_version()}
+
+
+def fit_on(data: Path, geo: Path, threads: int) -> dict:
+    """``nefii fit --geometry geo`` (mesh mode) on ``data``, evaluated; the masked metrics."""
+    run = geo / f"fit_{data.name}"
+    if not (run / "eval" / "metrics.json").exists():
+        if not (run / "model.pt").exists():
+            resume = ["--resume"] if (run / "checkpoints").exists() else []
+            nefii("fit", str(data), "--out", str(run), "--geometry", str(geo), "--quiet", *resume,
+                  "--set", f"threads={threads}")
+        nefii("eval", str(run), "--quiet", "--spp", "64")
+    return json.loads((run / "eval" / "metrics.json").read_text())["masked"]
+
+
+def ground_truth_fit(name: str, data: Path, threads: int) -> dict:
+    """The full model on the scene's own mesh: ``benchmarks/quality.py``'s run, fitted here if missing."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from quality import run_dir, run_one  # noqa: PLC0415
+
+    run_one(data, name, "full", [], threads, 64)
+    return json.loads((run_dir(name, "full") / "eval" / "metrics.json").read_text())["masked"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--scenes", nargs="+", default=["bowl", "leaning", "cup", "corner"])
+    ap.add_argument("--masks", nargs="+", default=["on"], choices=["on", "off"])
+    ap.add_argument("--res", type=int, default=64)
+    ap.add_argument("--views", type=int, default=64)
+    ap.add_argument("--fits", nargs="*", metavar="SCENE", default=None,
+                    help="also fit materials on the reconstructed geometry (of these scenes; none named: all), at "
+                         "--fit-res, beside quality.py's fit on the ground-truth mesh")
+    ap.add_argument("--fit-res", type=int, default=128)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--set", dest="extra", action="append", default=[])
+    args = ap.parse_args()
+    threads = 1 if args.jobs > 1 else 0
+    datas = {s: scene(s, args.res, args.views) for s in args.scenes}
+    t0 = time.time()
+    jobs = [(datas[s], s, m) for s in args.scenes for m in args.masks]
+    with ThreadPoolExecutor(args.jobs) as pool:
+        rows = list(pool.map(lambda j: geometry_run(*j, threads, args.extra), jobs))
+    fitted = [r for r in rows if args.fits is not None and (not args.fits or r["scene"] in args.fits)]
+    with ThreadPoolExecutor(args.jobs) as pool:
+        fits = list(pool.map(lambda r: fit_on(scene(r["scene"], args.fit_res, args.views), r["folder"], threads),
+                             fitted))
+        gts = list(pool.map(lambda r: ground_truth_fit(r["scene"], scene(r["scene"], args.fit_res, args.views),
+                                                       threads), fitted))
+    for r, f, g in zip(fitted, fits, gts):
+        r["fit"], r["gt_fit"] = f, g
+    any_fit = bool(fitted)
+    lines = [f"# geometry ({stamp()})", "",
+             f"Machine: {machine()}. Scenes {args.res}x{args.res}, {args.views} training views; `nefii geometry` "
+             f"`cpu` preset{' + ' + ' '.join(args.extra) if args.extra else ''}; {args.jobs} at a time "
+             f"({threads or 'all'} thread(s) each). This invocation {(time.time() - t0) / 60:.1f} min; "
+             f"code {code_version()}.", "",
+             "Chamfer: mean of both directed mean nearest-neighbour distances over 100k surface samples each, "
+             "relative to the scene mesh's bounding-box diagonal (target <= 1%).", "",
+             *([f"Fits: `nefii fit --geometry` (mesh mode, `cpu` preset) on the {args.fit_res}x{args.fit_res} "
+                f"scene with the mesh reconstructed above, beside the same fit on the scene's own mesh "
+                f"(quality.py's `full` run); masked albedo PSNR (target: within 1.5 dB) and roughness MSE.", ""]
+               if any_fit else []),
+             "| scene | masks | chamfer (% diag) | normal error (deg) | wall min | peak GiB |"
+             + (" albedo PSNR recon / GT geometry | roughness MSE recon / GT geometry |" if any_fit else ""),
+             "|---|---|---|---|---|---|" + ("---|---|" if any_fit else "")]
+    for r in rows:
+        line = (f"| {r['scene']} | {r['masks']} | {100 * r['chamfer_rel']:.2f} | {r['normal_deg']:.1f} | "
+                f"{r['wall_min']:.1f} | {r['peak_gib']:.2f} |")
+        if "fit" in r:
+            line += (f" {r['fit']['albedo_psnr']:.2f} / {r['gt_fit']['albedo_psnr']:.2f} | "
+                     f"{r['fit']['roughness_mse']:.4f} / {r['gt_fit']['roughness_mse']:.4f} |")
+        elif any_fit:
+            line += " | |"
+        lines.append(line)
+    text = "\n".join(lines) + "\n"
+    print(text)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "geometry.md").write_text(text)
+
+
+if __name__ == "__main__":
+    main()

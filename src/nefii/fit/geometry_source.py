@@ -1,0 +1,61 @@
+"""Where a run's frozen geometry comes from: a mesh, or the output folder of ``nefii geometry``
+(its mesh, or its SDF sphere-traced with the feature vector f). One place for fit, eval and relight."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import InputError
+from ..fields.features import FeatureField
+from ..geometry import MeshGeometry
+from ..geometry.base import Geometry
+
+MODES = ("mesh", "sdf")
+
+
+@dataclass(frozen=True)
+class GeometrySource:
+    mode: str
+    """``mesh``: triangles ray-cast by Embree; ``sdf``: the SDF of ``folder`` sphere-traced"""
+    mesh: Path
+    """the triangle mesh (the one export and view use in either mode)"""
+    folder: Path | None = None
+    """the ``nefii geometry`` output, if the geometry came from one"""
+
+    def to_dict(self) -> dict:
+        return {"mode": self.mode, "mesh": str(self.mesh), "folder": None if self.folder is None else str(self.folder)}
+
+    @staticmethod
+    def from_dict(d: dict) -> "GeometrySource":
+        return GeometrySource(d["mode"], Path(d["mesh"]), None if d.get("folder") is None else Path(d["folder"]))
+
+    def open(self) -> tuple[Geometry, FeatureField | None]:
+        """The geometry to cast rays against and, in ``sdf`` mode, the feature field for the fields."""
+        if self.mode == "sdf":
+            from ..sdf.outputs import load_sdf
+            from ..sdf.trace import SDFGeometry
+            assert self.folder is not None
+            loaded = load_sdf(self.folder)
+            features = FeatureField(loaded.sdf, loaded.normalization.center, loaded.normalization.radius)
+            return SDFGeometry(loaded.sdf, loaded.normalization), features
+        return MeshGeometry.from_file(self.mesh), None
+
+
+def resolve_source(mesh: Path | None, geometry: Path | None, scene_mesh: Path | None, mode: str,
+                   data: Path) -> GeometrySource:
+    """``--mesh`` or ``--geometry`` (not both), else the scene's own mesh."""
+    if mode not in MODES:
+        raise InputError(None, f"geometry_mode must be one of {', '.join(MODES)}, got {mode!r}")
+    if mesh is not None and geometry is not None:
+        raise InputError(geometry, "give --mesh or --geometry, not both")
+    if geometry is not None:
+        if not (geometry / "sdf.pt").is_file() or not (geometry / "mesh.ply").is_file():
+            raise InputError(geometry, "not a nefii geometry folder (needs sdf.pt and mesh.ply: run nefii geometry)")
+        return GeometrySource(mode, (geometry / "mesh.ply").resolve(), geometry.resolve())
+    if mode == "sdf":
+        raise InputError(None, "geometry_mode=sdf needs --geometry GEO (the output of nefii geometry)")
+    path = mesh or scene_mesh
+    if path is None:
+        raise InputError(data, "no geometry: the dataset has no mesh.ply; pass --mesh PATH or --geometry GEO "
+                               "(run nefii geometry first)")
+    return GeometrySource("mesh", Path(path).resolve())

@@ -1,0 +1,125 @@
+"""Configuration of the geometry stage: one dataclass, a docstring per field, presets in one place."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..fit.config import NetworkConfig, _merge, _parse_value
+
+
+@dataclass
+class GeometryConfig:
+    preset: str = "cpu"
+    """the preset these values started from"""
+    steps: int = 3000
+    """optimisation steps"""
+    batch_rays: int = 512
+    """rays per step"""
+    samples: int = 32
+    """stratified samples per ray inside the unit sphere"""
+    importance: int = 32
+    """extra samples per ray by NeuS's hierarchical up-sampling (in ``importance_rounds`` rounds)"""
+    importance_rounds: int = 2
+    """rounds of up-sampling, at fixed sharpness 64 * 2^i"""
+    background_samples: int = 16
+    """samples per ray of the NeRF++ background (used without masks)"""
+    lr: float = 1e-2
+    """Adam learning rate of the SDF's encoding (a hash-grid table wants a large step)"""
+    lr_networks: float = 2e-3
+    """Adam learning rate of the MLPs, the sharpness and the background"""
+    lr_decay: float = 0.1
+    """learning rates fall exponentially to this fraction at the last step"""
+    eikonal_weight: float = 0.1
+    """weight of the eikonal loss ``(|grad f| - 1)^2`` (NeuS: 0.1)"""
+    mask_weight: float = 0.1
+    """weight of the mask loss, binary cross-entropy of the rendered opacity (NeuS: 0.1)"""
+    anneal_end: float = 0.2
+    """fraction of the steps over which NeuS's cosine annealing goes from 0 to 1"""
+    coarse_to_fine: float = 0.0
+    """fraction of the steps over which the hash-grid levels are switched on one after another,
+    from ``start_levels`` (Neuralangelo's coarse-to-fine; 0: all levels from the start). The
+    coarse levels settle the topology (a bowl's hollow) before the fine ones add detail"""
+    start_levels: int = 4
+    """hash-grid levels active at the first step when ``coarse_to_fine`` > 0"""
+    init_radius: float = 0.5
+    """radius of the sphere the SDF starts as, in normalised units"""
+    feature_dim: int = 16
+    """size of the geometric feature vector f (paper: 512)"""
+    sdf: NetworkConfig = field(default_factory=NetworkConfig)
+    """the SDF network"""
+    color: NetworkConfig = field(default_factory=NetworkConfig)
+    """the colour network (its encoding is not used)"""
+    mesh_resolution: int = 256
+    """marching-cubes grid resolution over the unit cube"""
+    min_component: float = 0.01
+    """connected components with fewer than this fraction of the mesh's faces are dropped (floaters)"""
+    from_mesh_points: int = 8192
+    """``--from-mesh``: sampled points per step"""
+    seed: int = 0
+    """seeds parameters, ray batches and samples"""
+    checkpoint_every_s: float = 120.0
+    """seconds between checkpoints"""
+    threads: int = 0
+    """CPU threads for torch (0: the cores this process may use)"""
+
+
+GEOMETRY_PRESETS: dict[str, dict[str, Any]] = {
+    "cpu": {"batch_rays": 256, "samples": 16, "importance": 16, "coarse_to_fine": 0.5,
+            "sdf": {"encoding": {"levels": 10, "log2_table_size": 16, "max_resolution": 128}, "hidden": 64, "layers": 1},
+            "color": {"hidden": 64, "layers": 2}},
+    "paper": {
+        "steps": 300000, "batch_rays": 512, "samples": 64, "importance": 64, "importance_rounds": 4,
+        "background_samples": 32, "lr": 5e-4, "lr_networks": 5e-4, "anneal_end": 50000 / 300000, "feature_dim": 512,
+        "sdf": {"encoding": {"kind": "fourier", "fourier_freqs": 6}, "hidden": 256, "layers": 8},
+        "color": {"hidden": 256, "layers": 4}, "mesh_resolution": 512,
+    },
+    "tiny": {
+        "steps": 40, "batch_rays": 64, "samples": 8, "importance": 8, "importance_rounds": 1, "background_samples": 4,
+        "coarse_to_fine": 0.5, "start_levels": 2,
+        "feature_dim": 4, "mesh_resolution": 32, "from_mesh_points": 1024, "checkpoint_every_s": 60.0,
+        "sdf": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
+        "color": {"hidden": 16, "layers": 1},
+    },
+}
+"""``cpu``: hash-grid SDF for 2 CPU cores; ``paper``: NeuS's networks (8x256 SDF MLP, 6 frequencies) for a GPU;
+``tiny``: tests."""
+
+
+def resolve_geometry_config(preset: str, overrides: list[str]) -> GeometryConfig:
+    """The preset, then ``key=value`` overrides with dotted keys (``sdf.hidden=128``)."""
+    if preset not in GEOMETRY_PRESETS:
+        raise KeyError(f"unknown preset {preset!r} (known: {', '.join(GEOMETRY_PRESETS)})")
+    values = dataclasses.asdict(GeometryConfig())
+    _update(values, {**GEOMETRY_PRESETS[preset], "preset": preset})
+    for item in overrides:
+        if "=" not in item:
+            raise ValueError(f"--set wants key=value, got {item!r}")
+        key, text = item.split("=", 1)
+        node = values
+        parts = key.split(".")
+        for p in parts[:-1]:
+            if not isinstance(node.get(p), dict):
+                raise KeyError(f"unknown config field {key}")
+            node = node[p]
+        if parts[-1] not in node or isinstance(node[parts[-1]], dict):
+            raise KeyError(f"unknown config field {key}")
+        node[parts[-1]] = _parse_value(text, node[parts[-1]])
+    return geometry_config_from_dict(values)
+
+
+def _update(values: dict[str, Any], patch: dict[str, Any]) -> None:
+    for k, v in patch.items():
+        if k not in values:
+            raise KeyError(f"unknown config field {k}")
+        if isinstance(v, dict):
+            _update(values[k], v)
+        else:
+            values[k] = v
+
+
+def geometry_config_from_dict(values: dict[str, Any]) -> GeometryConfig:
+    """Rebuild the (nested) dataclass from ``dataclasses.asdict`` output; unknown keys raise ``KeyError``."""
+    base = dataclasses.asdict(GeometryConfig())
+    _update(base, values)
+    return _merge(GeometryConfig, base, "")

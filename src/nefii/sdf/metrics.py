@@ -1,0 +1,34 @@
+"""How close a reconstructed mesh is to a reference: chamfer distance and normal angle error."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class MeshDistance:
+    chamfer: float
+    """mean of the two directed mean nearest-neighbour distances (world units)"""
+    chamfer_rel: float
+    """``chamfer`` over the reference's bounding-box diagonal"""
+    normal_deg: float
+    """mean angle between the normals of nearest-neighbour pairs, both directions, in degrees"""
+
+
+def mesh_distance(pred: trimesh.Trimesh, ref: trimesh.Trimesh, samples: int = 100_000, seed: int = 0) -> MeshDistance:
+    """Symmetric chamfer distance and normal error from ``samples`` area-uniform points on each mesh.
+    Normals are compared without their sign (an inside-out patch counts as an orientation error of 0).
+    Point-to-point, so it has a floor of about half the sample spacing even for identical surfaces
+    (a unit sphere at 100k samples: ~0.0055, i.e. 0.16% of its bounding-box diagonal)."""
+    pa, fa = trimesh.sample.sample_surface(pred, samples, seed=seed)
+    pb, fb = trimesh.sample.sample_surface(ref, samples, seed=seed + 1)
+    na, nb = pred.face_normals[fa], ref.face_normals[fb]
+    da, ia = cKDTree(pb).query(pa, workers=-1)
+    db, ib = cKDTree(pa).query(pb, workers=-1)
+    chamfer = 0.5 * (da.mean() + db.mean())
+    cos = np.concatenate([np.abs((na * nb[ia]).sum(-1)), np.abs((nb * na[ib]).sum(-1))]).clip(0.0, 1.0)
+    diag = float(np.linalg.norm(ref.bounds[1] - ref.bounds[0]))
+    return MeshDistance(float(chamfer), float(chamfer / diag), float(np.degrees(np.arccos(cos)).mean()))

@@ -1,0 +1,131 @@
+"""The geometry stage's optimisation loop: NeuS from images, or an SDF fitted to a given mesh.
+
+Both objectives share one loop (Adam, exponential decay, atomic checkpoints, resume with the
+random generator's state, progress bar); they differ in what a step's loss is.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import torch
+from jaxtyping import Bool, Float
+from torch import Tensor
+from tqdm import tqdm
+
+from ..io.checkpoints import latest_checkpoint, save_checkpoint
+from .config import GeometryConfig
+from .losses import GeometryLoss, geometry_loss
+from .model import NeuSModel, render_rays
+
+
+class Objective(Protocol):
+    def loss(self, model: NeuSModel, step: int, generator: torch.Generator) -> GeometryLoss: ...
+
+
+def uniform_in_ball(n: int, generator: torch.Generator, device: torch.device) -> Float[Tensor, "n 3"]:
+    d = torch.randn(n, 3, generator=generator, device=device)
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    return d * torch.rand(n, 1, generator=generator, device=device).pow(1.0 / 3.0)
+
+
+@dataclass
+class ImageObjective:
+    """NeuS: render random training rays, compare colours (and opacity with the masks)."""
+
+    cfg: GeometryConfig
+    origins: Float[Tensor, "P 3"]
+    """normalised ray origins of every training pixel"""
+    directions: Float[Tensor, "P 3"]
+    rgb: Float[Tensor, "P 3"]
+    mask: Bool[Tensor, " P"] | None
+
+    def loss(self, model: NeuSModel, step: int, generator: torch.Generator) -> GeometryLoss:
+        cfg = self.cfg
+        i = torch.randint(len(self.origins), (cfg.batch_rays,), generator=generator, device=self.origins.device)
+        anneal = min(1.0, step / max(cfg.anneal_end * cfg.steps, 1.0))
+        out = render_rays(model, self.origins[i], self.directions[i], cfg, generator, train=True, cos_anneal=anneal)
+        extra = uniform_in_ball(cfg.batch_rays, generator, self.origins.device)
+        _, g_extra, _ = model.sdf.with_gradient(extra, create_graph=True)
+        return geometry_loss(out, self.rgb[i], None if self.mask is None else self.mask[i], g_extra,
+                             cfg.eikonal_weight, cfg.mask_weight)
+
+
+class GeometryTrainer:
+    def __init__(self, cfg: GeometryConfig, model: NeuSModel, objective: Objective, device: torch.device) -> None:
+        self.cfg, self.model, self.objective, self.device = cfg, model.to(device), objective, device
+        table = [p for name, p in model.named_parameters() if name.startswith("sdf.encoding.")]
+        table_ids = {id(p) for p in table}
+        rest = [p for p in model.parameters() if id(p) not in table_ids]
+        groups = [{"params": rest, "lr": cfg.lr_networks}]
+        if table:
+            groups.append({"params": table, "lr": cfg.lr})
+        try:
+            self.optimizer = torch.optim.Adam(groups, fused=True)
+        except (RuntimeError, TypeError):
+            self.optimizer = torch.optim.Adam(groups)
+        gamma = cfg.lr_decay ** (1.0 / max(cfg.steps, 1))
+        self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma)
+        self.generator = torch.Generator(device=device).manual_seed(cfg.seed)
+        self.step = 0
+
+    def active_levels(self, step: int) -> float | None:
+        """Hash-grid levels in use at ``step`` (see ``GeometryConfig.coarse_to_fine``); None: all."""
+        cfg = self.cfg
+        levels = len(self.model.sdf.level_weights)
+        end = cfg.coarse_to_fine * cfg.steps
+        if end <= 0 or step >= end:
+            return None
+        return cfg.start_levels + (levels - cfg.start_levels) * step / end
+
+    def train_step(self) -> GeometryLoss:
+        self.model.sdf.set_active_levels(self.active_levels(self.step))
+        terms = self.objective.loss(self.model, self.step, self.generator)
+        if not bool(torch.isfinite(terms.total)):
+            raise FloatingPointError(f"step {self.step}: geometry loss is not finite ({terms.total.item()})")
+        self.optimizer.zero_grad(set_to_none=True)
+        terms.total.backward()
+        self.optimizer.step()
+        self.scheduler.step()
+        self.step += 1
+        return terms
+
+    def state_dict(self) -> dict:
+        return {"step": self.step, "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "scheduler": self.scheduler.state_dict(), "generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = int(state["step"])
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.generator.set_state(state["generator"])
+
+    def resume(self, folder: Path) -> bool:
+        last = latest_checkpoint(folder)
+        if last is None:
+            return False
+        self.load_state_dict(torch.load(last, map_location=self.device, weights_only=False))
+        return True
+
+    def fit(self, folder: Path, progress: bool = True) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        last = time.monotonic()
+        bar = tqdm(total=self.cfg.steps, initial=self.step, desc="geometry", unit="step", disable=not progress,
+                   dynamic_ncols=True)
+        ema = math.nan
+        while self.step < self.cfg.steps:
+            terms = self.train_step()
+            v = terms.total.item()
+            ema = v if math.isnan(ema) else 0.95 * ema + 0.05 * v
+            bar.set_postfix(loss=f"{ema:.4f}", s=f"{float(self.model.sharpness().detach()):.0f}", refresh=False)
+            bar.update(1)
+            if time.monotonic() - last >= self.cfg.checkpoint_every_s and self.step < self.cfg.steps:
+                save_checkpoint(folder, self.step, self.state_dict())
+                last = time.monotonic()
+        bar.close()
+        self.model.sdf.set_active_levels(None)
+        save_checkpoint(folder, self.step, self.state_dict())

@@ -1,0 +1,375 @@
+"""The geometry stage: NeuS volume rendering math, normalisation, SDF networks, sphere tracing against
+Embree, marching cubes, signed distances of a mesh, and ``nefii geometry`` end to end at a tiny size."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from nefii.camera import intrinsics_from_fov, look_at, pixel_rays
+from nefii.cli.main import main
+from nefii.data.scene import Cameras
+from nefii.errors import InputError
+from nefii.fields.encodings import HashGrid
+from nefii.geometry import MeshGeometry
+from nefii.geometry.base import Rays
+from nefii.sdf.extract import extract_mesh
+from nefii.sdf.from_mesh import inside_by_parity, mesh_signed_distances
+from nefii.sdf.metrics import mesh_distance
+from nefii.sdf.networks import SDFNetwork
+from nefii.sdf.normalization import Normalization, look_at_center, normalization_from_cameras
+from nefii.sdf.outputs import load_sdf
+from nefii.sdf.trace import SDFGeometry
+from nefii.sdf.volume import (composite_weights, neus_alpha, sample_pdf, sphere_bounds, stratified_depths,
+                              upsample_depths)
+
+# --------------------------------------------------------------------------- volume rendering math
+
+
+def test_sphere_bounds_are_the_analytic_entry_and_exit():
+    o = torch.tensor([[0.0, 0.0, -3.0], [0.0, 0.5, -3.0], [0.0, 2.0, -3.0], [0.0, 0.0, 0.0]])
+    d = torch.tensor([[0.0, 0.0, 1.0]]).expand(4, 3)
+    near, far, hit = sphere_bounds(o, d)
+    assert hit.tolist() == [True, True, False, True]
+    torch.testing.assert_close(near[:2], torch.tensor([2.0, 3.0 - math.sqrt(0.75)]))
+    torch.testing.assert_close(far[:2], torch.tensor([4.0, 3.0 + math.sqrt(0.75)]))
+    assert float(near[3]) == 0.0 and float(far[3]) == pytest.approx(1.0)
+
+
+def test_stratified_depths_are_sorted_and_one_per_bin():
+    near, far = torch.tensor([0.5, 1.0]), torch.tensor([1.5, 3.0])
+    z = stratified_depths(near, far, 8, torch.Generator().manual_seed(0))
+    assert bool((z[:, 1:] > z[:, :-1]).all())
+    bins = ((z - near[:, None]) / (far - near)[:, None] * 8).floor()
+    assert bins.tolist() == [list(range(8))] * 2
+
+
+def _plane_render(inv_s: float, n: int = 512):
+    """A ray along +z through the plane z = 1 (SDF 1 - z, facing the ray), samples from 0 to 2."""
+    z = torch.linspace(0.0, 2.0, n + 1).unsqueeze(0)
+    mids, deltas = 0.5 * (z[:, 1:] + z[:, :-1]), z[:, 1:] - z[:, :-1]
+    sdf = 1.0 - mids
+    cos = torch.full_like(sdf, -1.0)
+    w = composite_weights(neus_alpha(sdf, cos, deltas, inv_s))
+    return mids, w
+
+
+@pytest.mark.parametrize("inv_s", [20.0, 200.0])
+def test_neus_weights_of_a_plane_peak_at_the_surface_and_sum_to_one(inv_s):
+    mids, w = _plane_render(inv_s)
+    assert float(w.sum()) == pytest.approx(1.0, abs=1e-3)
+    depth = float((w * mids).sum())
+    assert depth == pytest.approx(1.0, abs=2.0 / inv_s)          # unbiased: the expected depth is the surface
+    assert float(mids[0, w.argmax()]) == pytest.approx(1.0, abs=2.0 / 512 + 1e-6)
+
+
+def test_sample_pdf_follows_the_weights():
+    edges = torch.linspace(0.0, 1.0, 11).unsqueeze(0)
+    w = torch.zeros(1, 10)
+    w[0, 3] = 1.0
+    s = sample_pdf(edges, w, 64)
+    assert float(((s >= 0.3) & (s <= 0.4)).float().mean()) > 0.95
+
+
+def test_upsampling_puts_new_samples_near_the_surface():
+    z = torch.linspace(0.0, 2.0, 33).unsqueeze(0)
+    new = upsample_depths(z, 1.0 - z, 16, inv_s=64.0)
+    assert float((new - 1.0).abs().max()) < 0.1
+
+
+# --------------------------------------------------------------------------- normalisation
+
+
+def ring_cameras(n: int = 8, res: int = 48, center=(0.3, -0.2, 0.1), dist: float = 3.0) -> Cameras:
+    c = torch.tensor(center, dtype=torch.float64)
+    c2w = []
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        eye = c + dist * torch.tensor([math.cos(a), math.sin(a), 0.4 + 0.3 * (k % 2)], dtype=torch.float64)
+        c2w.append(look_at(eye, c, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)))
+    K = intrinsics_from_fov(math.radians(40.0), res, res)
+    return Cameras(K.expand(n, 3, 3).clone(), torch.stack(c2w), res, res)
+
+
+def sphere_masks(cams: Cameras, center, radius: float) -> torch.Tensor:
+    geo = MeshGeometry(*(lambda m: (m.vertices, m.faces))(
+        trimesh.creation.icosphere(subdivisions=4, radius=radius).apply_translation(center)))
+    masks = []
+    for v in range(len(cams)):
+        o, d = pixel_rays(cams.c2w[v], cams.K[v], cams.height, cams.width)
+        masks.append(geo.intersect(Rays(o.reshape(-1, 3).float(), d.reshape(-1, 3).float())).valid.reshape(
+            cams.height, cams.width))
+    return torch.stack(masks)
+
+
+def test_the_cameras_look_at_center_is_found():
+    cams = ring_cameras()
+    torch.testing.assert_close(look_at_center(cams.c2w), torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64))
+
+
+def test_normalisation_from_masks_is_the_visual_hulls_bounding_sphere():
+    cams = ring_cameras()
+    center, r = (0.1, 0.0, 0.2), 0.4                      # off the look-at point on purpose
+    norm = normalization_from_cameras(cams, sphere_masks(cams, center, r), margin=1.0)
+    assert np.allclose(norm.center, center, atol=0.08)
+    assert r <= norm.radius <= r * 1.45                      # a visual hull from 8 views is a bit larger
+    x = torch.randn(10, 3, dtype=torch.float64)
+    torch.testing.assert_close(norm.to_world(norm.to_unit(x)), x)
+
+
+def test_normalisation_without_masks_fits_in_every_view():
+    cams = ring_cameras()
+    norm = normalization_from_cameras(cams, None)
+    assert np.allclose(norm.center, (0.3, -0.2, 0.1), atol=1e-6)
+    half_fov = math.radians(20.0)
+    assert norm.radius == pytest.approx(3.0 * math.sqrt(1 + 0.4**2) * math.sin(half_fov), rel=1e-6)
+
+
+def test_normalisation_files_round_trip_and_bad_ones_are_input_errors(tmp_path):
+    n = Normalization((1.0, 2.0, 3.0), 0.5)
+    n.save(tmp_path / "n.json")
+    assert Normalization.load(tmp_path / "n.json") == n
+    (tmp_path / "bad.json").write_text('{"center": [1, 2], "radius": -1}')
+    with pytest.raises(InputError, match="bad.json"):
+        Normalization.load(tmp_path / "bad.json")
+    cams = ring_cameras(n=4)
+    with pytest.raises(InputError, match="carve away everything"):
+        normalization_from_cameras(cams, torch.zeros(4, 48, 48, dtype=torch.bool))
+
+
+# --------------------------------------------------------------------------- SDF network, marching cubes, tracing
+
+
+def bumpy_sdf(seed: int = 0) -> SDFNetwork:
+    """A small SDF network: the initial sphere (radius 0.5) plus a smooth random bump field."""
+    torch.manual_seed(seed)
+    net = SDFNetwork(HashGrid(4, 2, 12, 4, 16, init_scale=0.5), 16, 1, 4)
+    with torch.no_grad():
+        net.net[-1].weight[0].normal_(0.0, 0.02)
+    return net
+
+
+def test_the_sdf_network_starts_as_an_exact_sphere():
+    torch.manual_seed(0)
+    net = SDFNetwork(HashGrid(4, 2, 12, 4, 16), 16, 1, 4, init_radius=0.5)
+    u = torch.randn(500, 3) * 0.4
+    sdf, grad, feat = net.with_gradient(u, create_graph=False)
+    torch.testing.assert_close(sdf, u.norm(dim=-1) - 0.5)
+    torch.testing.assert_close(grad.norm(dim=-1), torch.ones(500))
+    assert feat.shape == (500, 4)
+
+
+def test_coarse_to_fine_switches_hash_levels_on_in_order():
+    """With ``active`` levels only the coarse levels reach the MLP: perturbing a finer level's table
+    changes nothing until that level is on; ``None`` turns all on (what is saved)."""
+    net = bumpy_sdf()
+    grid = net.encoding
+    u = torch.rand(300, 3) * 1.6 - 0.8
+    net.set_active_levels(2.5)
+    torch.testing.assert_close(net.level_weights, torch.tensor([1.0, 1.0, 0.5, 0.0]))
+    before = net.sdf(u)
+    with torch.no_grad():
+        grid.table[int(grid.offset[3]):] += 1.0                       # level 3: off, so no effect
+    torch.testing.assert_close(net.sdf(u), before)
+    with torch.no_grad():
+        grid.table[int(grid.offset[2]):int(grid.offset[3])] += 1.0    # level 2: half on
+    assert not torch.allclose(net.sdf(u), before)
+    net.set_active_levels(None)
+    torch.testing.assert_close(net.level_weights, torch.ones(4))
+
+
+def test_marching_cubes_of_the_initial_sphere_is_that_sphere_wound_outwards():
+    torch.manual_seed(0)
+    net = SDFNetwork(HashGrid(4, 2, 12, 4, 16), 16, 1, 4, init_radius=0.5)
+    norm = Normalization((1.0, -2.0, 0.5), 2.0)
+    mesh = extract_mesh(net, norm, 64)
+    ref = trimesh.creation.icosphere(subdivisions=5, radius=1.0).apply_translation((1.0, -2.0, 0.5))
+    dist = mesh_distance(mesh, ref, samples=20000)
+    assert dist.chamfer_rel < 0.005, dist                       # the 20k-sample floor is ~0.0035
+    assert mesh.volume > 0 and mesh.volume == pytest.approx(4 / 3 * math.pi, rel=0.02)
+
+
+def test_sphere_tracing_agrees_with_embree_on_the_extracted_mesh():
+    """Hit or miss the same for nearly every ray, and the distance within one marching-cubes voxel."""
+    net = bumpy_sdf()
+    norm = Normalization((0.2, 0.1, -0.3), 1.5)
+    res = 128
+    mesh = extract_mesh(net, norm, res, min_component=0.0)
+    embree = MeshGeometry(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    traced = SDFGeometry(net, norm)
+    g = torch.Generator().manual_seed(1)
+    o = torch.tensor(norm.center) + torch.nn.functional.normalize(torch.randn(3000, 3, generator=g), dim=-1) * 3.0
+    target = torch.tensor(norm.center) + torch.randn(3000, 3, generator=g) * 0.5
+    d = torch.nn.functional.normalize(target - o, dim=-1)
+    a, b = traced.intersect(Rays(o, d)), embree.intersect(Rays(o, d))
+    assert 0.2 < float(b.valid.float().mean()) < 0.95
+    both = a.valid & b.valid
+    agree = float((a.valid == b.valid).float().mean())
+    assert agree > 0.99, agree                                   # disagreements only at grazing silhouettes
+    voxel = 2.0 / (res - 1) * norm.radius
+    err = (a.t[both] - b.t[both]).abs()
+    assert float(err.quantile(0.99)) < voxel, (float(err.max()), voxel)
+    assert a.features is not None and a.features.shape == (3000, 4)
+    cos = (a.normal[both] * b.geometric_normal[both]).sum(-1)
+    assert float(cos.median()) > 0.98
+
+
+def test_sphere_tracing_respects_t_max_and_starts_from_surfaces():
+    net = bumpy_sdf()
+    norm = Normalization((0.0, 0.0, 0.0), 1.0)
+    geo = SDFGeometry(net, norm)
+    o = torch.tensor([[0.0, 0.0, -2.0], [0.0, 0.0, -2.0]])
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    full = geo.intersect(Rays(o, d))
+    assert bool(full.valid.all())
+    short = geo.intersect(Rays(o, d, t_max=full.t - 0.05))
+    assert not bool(short.valid.any())
+    # a secondary ray leaving the surface outwards does not hit its own start
+    x, n = full.position[:1], full.normal[:1]
+    assert not bool(geo.occluded(Rays(x + 1e-3 * n, n)).any())
+
+
+# --------------------------------------------------------------------------- signed distances of a mesh
+
+
+def test_inside_by_parity_matches_a_sphere():
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    geo = MeshGeometry(sphere.vertices, sphere.faces)
+    pts = np.random.default_rng(0).uniform(-0.8, 0.8, size=(4000, 3))
+    r = np.linalg.norm(pts, axis=-1)
+    clear = np.abs(r - 0.5) > 0.01                                # away from the faceting
+    assert np.array_equal(inside_by_parity(geo, pts)[clear], (r < 0.5)[clear])
+
+
+def test_mesh_signed_distances_match_the_analytic_sphere():
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.5)
+    norm = Normalization((0.0, 0.0, 0.0), 0.8)
+    sd = mesh_signed_distances(sphere, norm, 4000, surface_samples=200_000)
+    exact = (sd.points.norm(dim=-1) * 0.8 - 0.5) / 0.8
+    err = (sd.sdf - exact).abs()
+    assert float(err.quantile(0.99)) < 0.01
+    assert float(sd.points.norm(dim=-1).max()) < 1.3
+
+
+# --------------------------------------------------------------------------- nefii geometry end to end
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    from fit_fixtures import write_rendered_scene
+    return write_rendered_scene(tmp_path_factory.mktemp("gscene"), res=24, n_train=8, n_test=2)
+
+
+def _geometry(scene, out, *extra):
+    return main(["geometry", str(scene), "--out", str(out), "--preset", "tiny", "--quiet",
+                 "--set", "threads=1", *extra])
+
+
+@pytest.mark.parametrize("masks", ["on", "off"])
+def test_geometry_runs_end_to_end_with_and_without_masks(tiny_scene, tmp_path, masks):
+    out = tmp_path / "geo"
+    assert _geometry(tiny_scene, out, "--masks", masks) == 0
+    for name in ("sdf.pt", "mesh.ply", "normalization.json", "config.json", "geometry_stats.json"):
+        assert (out / name).is_file(), name
+    stats = json.loads((out / "geometry_stats.json").read_text())
+    assert stats["mesh_faces"] > 0 and ("with masks" in stats["source"]) == (masks == "on")
+    loaded = load_sdf(out)
+    mesh = trimesh.load(out / "mesh.ply", force="mesh")
+    # the mesh is in world coordinates: inside the normalisation sphere
+    r = np.linalg.norm(np.asarray(mesh.vertices) - np.asarray(loaded.normalization.center), axis=-1)
+    assert r.max() <= loaded.normalization.radius * 1.01
+    # and the loaded SDF is the trained one: zero on its own mesh's vertices (within a voxel)
+    u = loaded.normalization.to_unit(torch.from_numpy(np.asarray(mesh.vertices)).float())
+    assert float(loaded.sdf.sdf(u).abs().max()) < 2.0 / (loaded.config.mesh_resolution - 1) * 2
+
+
+def test_geometry_from_a_mesh_recovers_it(tiny_scene, tmp_path):
+    out = tmp_path / "geo"
+    assert _geometry(tiny_scene, out, "--from-mesh", str(tiny_scene / "mesh.ply"), "--set", "steps=300",
+                     "--set", "mesh_resolution=64") == 0
+    pred = trimesh.load(out / "mesh.ply", force="mesh")
+    ref = trimesh.load(tiny_scene / "mesh.ply", force="mesh")
+    assert mesh_distance(pred, ref, samples=20000).chamfer_rel < 0.02
+
+
+def test_geometry_resumes_and_refuses_bad_input(tiny_scene, tmp_path, capsys):
+    out = tmp_path / "geo"
+    assert _geometry(tiny_scene, out, "--set", "steps=10", "--set", "checkpoint_every_s=0") == 0
+    assert _geometry(tiny_scene, out) == 2                       # exists, no --resume
+    assert "already holds a geometry run" in capsys.readouterr().err
+    assert main(["geometry", str(tiny_scene), "--out", str(out), "--resume", "--quiet"]) == 0
+    bad = tmp_path / "bad.ply"
+    bad.write_text("not a mesh")
+    assert _geometry(tiny_scene, tmp_path / "g2", "--from-mesh", str(bad)) == 2
+    err = capsys.readouterr().err
+    assert "bad.ply" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "g2" / "sdf.pt").exists()
+
+
+# --------------------------------------------------------------------------- nefii fit --geometry GEO
+
+
+@pytest.fixture(scope="module")
+def geo_folder(tiny_scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("geo") / "geo"
+    assert _geometry(tiny_scene, out, "--from-mesh", str(tiny_scene / "mesh.ply"), "--set", "steps=200",
+                     "--set", "mesh_resolution=48") == 0
+    return out
+
+
+@pytest.mark.parametrize("mode", ["mesh", "sdf"])
+def test_fit_and_eval_on_a_geometry_folder(tiny_scene, geo_folder, tmp_path, mode):
+    from nefii.fit.outputs import load_run
+    run = tmp_path / "run"
+    assert main(["fit", str(tiny_scene), "--out", str(run), "--preset", "tiny", "--quiet", "--geometry",
+                 str(geo_folder), "--set", f"geometry_mode={mode}", "--set", "steps=10", "--set", "threads=1"]) == 0
+    fitted = load_run(run)
+    assert fitted.geometry.mode == mode and fitted.mesh == (geo_folder / "mesh.ply").resolve()
+    feats = fitted.model.material.features
+    assert (feats is not None) == (mode == "sdf")
+    if mode == "sdf":
+        # the fields see f: the material's first layer takes the hash-grid encoding plus f
+        enc = fitted.model.material.encoding.out_dim
+        assert fitted.model.material.net[0].in_features == enc + feats.dim
+        # and the SDF inside model.pt is the geometry stage's, frozen
+        sdf = load_sdf(geo_folder).sdf
+        u = torch.rand(64, 3) - 0.5
+        torch.testing.assert_close(feats.sdf(u)[1], sdf(u)[1])
+        assert not any(p.requires_grad for p in feats.parameters())
+    assert main(["eval", str(run), "--spp", "2", "--quiet"]) == 0
+    metrics = json.loads((run / "eval" / "metrics.json").read_text())
+    assert isinstance(metrics["masked"]["albedo_psnr"], float)
+
+
+def test_fit_geometry_input_errors(tiny_scene, geo_folder, tmp_path, capsys):
+    assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "a"), "--preset", "tiny", "--quiet",
+                 "--geometry", str(tmp_path), "--set", "steps=1"]) == 2
+    assert "not a nefii geometry folder" in capsys.readouterr().err
+    assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "b"), "--preset", "tiny", "--quiet",
+                 "--set", "geometry_mode=sdf", "--set", "steps=1"]) == 2
+    assert "needs --geometry" in capsys.readouterr().err
+    assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "c"), "--preset", "tiny", "--quiet",
+                 "--geometry", str(geo_folder), "--mesh", str(tiny_scene / "mesh.ply"), "--set", "steps=1"]) == 2
+    assert "not both" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- a built-in scene, real size (slow)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("masks", ["on", "off"])
+def test_geometry_reconstructs_the_bowl(tmp_path, masks):
+    """``nefii geometry`` (cpu preset) on the bowl at 64x64, 32 views: the mesh within 2% (masks) or 5% (no
+    masks) of the bounding-box diagonal in chamfer distance."""
+    pytest.importorskip("mitsuba")
+    data = tmp_path / "bowl"
+    assert main(["synth", "bowl", "--out", str(data), "--res", "64", "--views", "32", "--test-views", "2",
+                 "--spp", "16"]) == 0
+    out = tmp_path / "geo"
+    assert main(["geometry", str(data), "--out", str(out), "--masks", masks, "--quiet"]) == 0
+    d = mesh_distance(trimesh.load(out / "mesh.ply", force="mesh"), trimesh.load(data / "mesh.ply", force="mesh"))
+    assert d.chamfer_rel < (0.02 if masks == "on" else 0.05), d
