@@ -273,6 +273,8 @@ def write_results(args: argparse.Namespace, elapsed_s: float) -> None:
             finals[s] = {r.system: r.values.get("albedo_psnr") for r in rows}
     plotted = plot(common.RESULTS / "peers.png", curves, finals)
     cmd = "python benchmarks/peers/mitsuba_inverse.py --scenes " + " ".join(args.scenes)
+    if os.environ.get("NEFII_BENCH_CACHE"):
+        cmd = f"NEFII_BENCH_CACHE={os.environ['NEFII_BENCH_CACHE']} " + cmd
     if args.budget_s is not None:
         cmd += f" --budget-s {args.budget_s:g}"
     if args.threads != 1:
