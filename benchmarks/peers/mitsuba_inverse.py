@@ -206,7 +206,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--curve-max-steps", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--skip-nefii", action="store_true", help="fit nothing with nefii; use the runs that exist")
     ap.add_argument("--no-curve", action="store_true", help="skip nefii's albedo-over-time re-run")
-    ap.add_argument("--force", action="store_true", help="refit the peer even if its cached result matches")
+    ap.add_argument("--force", action="store_true", help="refit the peer and re-run nefii's curve even if cached")
     ap.add_argument("--set", dest="extra", action="append", default=[], metavar="KEY=VALUE",
                     help="nefii config override for its fits and curve (as quality.py --set)")
     for f in dataclasses.fields(PeerConfig):
@@ -234,10 +234,10 @@ def main(argv: list[str] | None = None) -> None:
     if not args.skip_nefii:  # full first: its fit time is the peer's budget
         list(pool.map(lambda s: quality.run_one(datas[s], s, "full", args.extra, args.threads, args.eval_spp),
                       args.scenes))
-    jobs = []
+    jobs, later = [], []  # the peers first, then the nefii baselines and curves
     if not args.skip_nefii:
-        jobs += [(quality.run_one, (datas[s], s, c, args.extra, args.threads, args.eval_spp))
-                 for s in args.scenes for c in NEFII_CONFIGS[1:]]
+        later += [(quality.run_one, (datas[s], s, c, args.extra, args.threads, args.eval_spp))
+                  for s in args.scenes for c in NEFII_CONFIGS[1:]]
     peer_flags = [x for f in dataclasses.fields(PeerConfig) if f.name != "threads"
                   for x in (f"--peer-{f.name.replace('_', '-')}", str(getattr(cfg, f.name)))]
     for s in args.scenes:
@@ -253,8 +253,8 @@ def main(argv: list[str] | None = None) -> None:
                    "--curve-every", str(args.curve_every), *[x for kv in args.extra for x in ("--set", kv)]]
             if args.curve_max_steps is not None:
                 cmd += ["--max-steps", str(args.curve_max_steps)]
-            jobs.append((_subprocess, (cmd, f"nefii curve {s}", args.threads)))
-    list(pool.map(lambda j: j[0](*j[1]), jobs))
+            later.append((_subprocess, (cmd, f"nefii curve {s}", args.threads)))
+    list(pool.map(lambda j: j[0](*j[1]), jobs + later))
     pool.shutdown()
     write_results(args, time.time() - t_start)
 

@@ -133,6 +133,10 @@ def crossing(curve_a: dict[str, np.ndarray], level: float) -> float | None:
     return None if len(ok) == 0 else float(curve_a["fit_s"][ok[0]])
 
 
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 60 else f"{seconds / 60:.1f} min"
+
+
 def curve_sentence(scene: str, peer_csv: Path, nefii_csv: Path) -> str | None:
     if not (peer_csv.is_file() and nefii_csv.is_file()):
         return None
@@ -143,12 +147,12 @@ def curve_sentence(scene: str, peer_csv: Path, nefii_csv: Path) -> str | None:
     nef_final, peer_final = float(nef["albedo_psnr"][-1]), float(peer["albedo_psnr"][-1])
     t_peer = crossing(peer, nef_final)
     t_nef = crossing(nef, peer_final)
-    s = (f"{scene}: curve ends at {peer_final:.2f} dB (peer, {peer['fit_s'][-1] / 60:.1f} min) and "
-         f"{nef_final:.2f} dB (nefii, {nef['fit_s'][-1] / 60:.1f} min); ")
+    s = (f"{scene}: curve ends at {peer_final:.2f} dB (peer, {_duration(peer['fit_s'][-1])}) and "
+         f"{nef_final:.2f} dB (nefii, {_duration(nef['fit_s'][-1])}); ")
     if t_peer is not None:
-        s += f"the peer reaches nefii's final albedo PSNR after {t_peer / 60:.1f} min"
+        s += f"the peer reaches nefii's final albedo PSNR after {_duration(t_peer)}"
     elif t_nef is not None:
-        s += f"nefii reaches the peer's final albedo PSNR after {t_nef / 60:.1f} min"
+        s += f"nefii reaches the peer's final albedo PSNR after {_duration(t_nef)}"
     else:
         s += "neither reaches the other's final value"
     return s + "."
