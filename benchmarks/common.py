@@ -11,7 +11,8 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parent
-CACHE = ROOT / ".cache"
+CACHE = Path(os.environ.get("NEFII_BENCH_CACHE", ROOT / ".cache"))
+"""scenes and runs; ``$NEFII_BENCH_CACHE`` points another checkout's benchmarks at the same cache"""
 RESULTS = ROOT / "results"
 
 

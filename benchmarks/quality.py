@@ -30,6 +30,10 @@ CONFIGS = {
     "indirect_off": ["indirect=off"],
     "visibility_off": ["visibility=off"],
 }
+BASELINES = {
+    "physg": ["visibility=off", "indirect=off"],
+}
+"""the paper's baselines as nefii configurations (benchmarks/peers); not in quality.md's default table"""
 COLUMNS = ("roughness_mse", "albedo_psnr", "albedo_ssim", "specular_psnr", "specular_ssim", "rgb_psnr", "rgb_ssim")
 
 
@@ -46,7 +50,8 @@ def run_one(data: Path, name: str, config: str, extra: list[str], threads: int, 
     if not metrics.exists():
         if not (run / "model.pt").exists():
             (run / "benchmark.json").unlink(missing_ok=True)
-            sets = [x for kv in [*CONFIGS[config], *extra, f"threads={threads}"] for x in ("--set", kv)]
+            switches = {**CONFIGS, **BASELINES}[config]
+            sets = [x for kv in [*switches, *extra, f"threads={threads}"] for x in ("--set", kv)]
             resume = ["--resume"] if (run / "checkpoints").exists() else []
             cmd = [sys.executable, "-m", "nefii.cli.main", "fit", str(data), "--out", str(run), "--quiet", *resume, *sets]
             proc = subprocess.run(cmd, capture_output=True, text=True)
