@@ -43,8 +43,12 @@ def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[st
         nefii("geometry", str(data), "--out", str(out), "--masks", masks, "--quiet", *resume, *sets)
     stats = json.loads((out / "geometry_stats.json").read_text())
     d = mesh_distance(trimesh.load(out / "mesh.ply", force="mesh"), trimesh.load(data / "mesh.ply", force="mesh"))
+    # a resumed run's wall time covers only its last session: scaled to all steps, and marked
+    done = stats.get("steps_this_session", stats["steps"])
+    wall = stats.get("wall_s_this_session", stats.get("wall_s")) * stats["steps"] / max(done, 1)
     return {"scene": name, "masks": masks, "chamfer_rel": d.chamfer_rel, "normal_deg": d.normal_deg,
-            "wall_min": stats["wall_s"] / 60, "peak_gib": stats["peak_rss_gib"], "folder": out, "code": code_version()}
+            "wall_min": wall / 60, "resumed": done < stats["steps"], "peak_gib": stats["peak_rss_gib"],
+            "folder": out, "code": code_version()}
 
 
 def fit_on(data: Path, geo: Path, threads: int) -> dict:
@@ -102,7 +106,8 @@ def main() -> None:
              f"({threads or 'all'} thread(s) each). This invocation {(time.time() - t0) / 60:.1f} min; "
              f"code {code_version()}.", "",
              "Chamfer: mean of both directed mean nearest-neighbour distances over 100k surface samples each, "
-             "relative to the scene mesh's bounding-box diagonal (target <= 1%).", "",
+             "relative to the scene mesh's bounding-box diagonal (target <= 1%). Wall time marked * is a "
+             "resumed run's last session scaled to all its steps.", "",
              *([f"Fits: `nefii fit --geometry` (mesh mode, `cpu` preset) on the {args.fit_res}x{args.fit_res} "
                 f"scene with the mesh reconstructed above, beside the same fit on the scene's own mesh "
                 f"(quality.py's `full` run); masked albedo PSNR (target: within 1.5 dB) and roughness MSE.", ""]
@@ -112,7 +117,7 @@ def main() -> None:
              "|---|---|---|---|---|---|" + ("---|---|" if any_fit else "")]
     for r in rows:
         line = (f"| {r['scene']} | {r['masks']} | {100 * r['chamfer_rel']:.2f} | {r['normal_deg']:.1f} | "
-                f"{r['wall_min']:.1f} | {r['peak_gib']:.2f} |")
+                f"{r['wall_min']:.1f}{'*' if r['resumed'] else ''} | {r['peak_gib']:.2f} |")
         if "fit" in r:
             line += (f" {r['fit']['albedo_psnr']:.2f} / {r['gt_fit']['albedo_psnr']:.2f} | "
                      f"{r['fit']['roughness_mse']:.4f} / {r['gt_fit']['roughness_mse']:.4f} |")

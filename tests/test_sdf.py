@@ -2,6 +2,7 @@
 Embree, marching cubes, signed distances of a mesh, and ``nefii geometry`` end to end at a tiny size."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -17,6 +18,7 @@ from nefii.errors import InputError
 from nefii.fields.encodings import HashGrid
 from nefii.geometry import MeshGeometry
 from nefii.geometry.base import Rays
+from nefii.sdf.config import geometry_config_from_dict, resolve_geometry_config
 from nefii.sdf.extract import extract_mesh
 from nefii.sdf.from_mesh import inside_by_parity, mesh_signed_distances
 from nefii.sdf.metrics import mesh_distance
@@ -28,6 +30,18 @@ from nefii.sdf.volume import (composite_weights, neus_alpha, sample_pdf, sphere_
                               upsample_depths)
 
 # --------------------------------------------------------------------------- volume rendering math
+
+
+def test_geometry_config_round_trips_and_rejects_unknown_fields():
+    cfg = resolve_geometry_config("paper", ["steps=7", "sdf.hidden=32"])
+    assert cfg.preset == "paper" and cfg.steps == 7 and cfg.sdf.hidden == 32
+    assert geometry_config_from_dict(json.loads(json.dumps(dataclasses.asdict(cfg)))) == cfg
+    assert resolve_geometry_config("cpu", []) != cfg
+    for bad, err in (("sdf.nope=1", KeyError), ("sdf=3", KeyError), ("steps", ValueError), ("steps=x", ValueError)):
+        with pytest.raises(err):
+            resolve_geometry_config("cpu", [bad])
+    with pytest.raises(KeyError):
+        resolve_geometry_config("huge", [])
 
 
 def test_sphere_bounds_are_the_analytic_entry_and_exit():

@@ -106,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
         if not trainer.resume(ckpt):
             raise InputError(ckpt, "no checkpoint to resume from")
         print(f"nefii geometry: resumed at step {trainer.step}")
+    step0 = trainer.step
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "config.json", json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
     try:
@@ -121,10 +122,11 @@ def run(args: argparse.Namespace) -> int:
         return 1
     with atomic_path(out / MESH_FILE) as tmp:
         mesh_out.export(tmp)
-    stats = {"steps": trainer.step, "wall_s": time.time() - t0, "source": source,
+    stats = {"steps": trainer.step, "steps_this_session": trainer.step - step0, "wall_s_this_session": time.time() - t0,
+             "source": source,
              "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
              "mesh_vertices": len(mesh_out.vertices), "mesh_faces": len(mesh_out.faces)}
     write_text_atomic(out / "geometry_stats.json", json.dumps(stats, indent=2) + "\n")
-    print(f"nefii geometry: done, {trainer.step} steps in {stats['wall_s'] / 60:.1f} min; wrote sdf.pt, mesh.ply "
+    print(f"nefii geometry: done, {trainer.step - step0} steps in {stats['wall_s_this_session'] / 60:.1f} min; wrote sdf.pt, mesh.ply "
           f"({len(mesh_out.faces)} triangles), normalization.json in {out}")
     return 0

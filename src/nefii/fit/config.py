@@ -9,6 +9,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..config_tools import apply_overrides, dataclass_from_dict
+
 
 @dataclass
 class EncodingConfig:
@@ -154,41 +156,13 @@ PRESETS: dict[str, dict[str, Any]] = {
 """``cpu``: designed for 2 CPU cores; ``paper``: the paper's sizes, for a GPU; ``tiny``: tests."""
 
 
-def _merge(cls: type, values: dict[str, Any], where: str) -> Any:
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    kwargs: dict[str, Any] = {}
-    for key, value in values.items():
-        if key not in fields:
-            raise KeyError(f"unknown config field {where}{key}")
-        sub = fields[key].default_factory if fields[key].default_factory is not dataclasses.MISSING else None
-        if sub is not None and dataclasses.is_dataclass(sub):
-            kwargs[key] = _merge(sub, value, f"{where}{key}.")
-        else:
-            kwargs[key] = value
-    return cls(**kwargs)
-
-
 def config_from_dict(values: dict[str, Any]) -> FitConfig:
     """Build a FitConfig from a (possibly partial, nested) dict; unknown keys raise ``KeyError``."""
-    return _merge(FitConfig, values, "")
+    return dataclass_from_dict(FitConfig, values)
 
 
 def config_to_dict(cfg: FitConfig) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
-
-
-def _parse_value(text: str, current: Any) -> Any:
-    if isinstance(current, bool):
-        if text.lower() in ("1", "true", "on", "yes"):
-            return True
-        if text.lower() in ("0", "false", "off", "no"):
-            return False
-        raise ValueError(f"expected on/off, got {text!r}")
-    if isinstance(current, int):
-        return int(text)
-    if isinstance(current, float):
-        return float(text)
-    return text
 
 
 def resolve_config(preset: str, overrides: list[str]) -> FitConfig:
@@ -196,17 +170,5 @@ def resolve_config(preset: str, overrides: list[str]) -> FitConfig:
     if preset not in PRESETS:
         raise KeyError(f"unknown preset {preset!r} (known: {', '.join(PRESETS)})")
     values = config_to_dict(config_from_dict({**PRESETS[preset], "preset": preset}))
-    for item in overrides:
-        if "=" not in item:
-            raise ValueError(f"--set wants key=value, got {item!r}")
-        key, text = item.split("=", 1)
-        node = values
-        parts = key.split(".")
-        for p in parts[:-1]:
-            if not isinstance(node.get(p), dict):
-                raise KeyError(f"unknown config field {key}")
-            node = node[p]
-        if parts[-1] not in node or isinstance(node[parts[-1]], dict):
-            raise KeyError(f"unknown config field {key}")
-        node[parts[-1]] = _parse_value(text, node[parts[-1]])
+    apply_overrides(values, overrides)
     return config_from_dict(values)

@@ -5,7 +5,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..fit.config import NetworkConfig, _merge, _parse_value
+from ..config_tools import apply_overrides, dataclass_from_dict
+from ..fit.config import NetworkConfig
 
 
 @dataclass
@@ -92,19 +93,7 @@ def resolve_geometry_config(preset: str, overrides: list[str]) -> GeometryConfig
         raise KeyError(f"unknown preset {preset!r} (known: {', '.join(GEOMETRY_PRESETS)})")
     values = dataclasses.asdict(GeometryConfig())
     _update(values, {**GEOMETRY_PRESETS[preset], "preset": preset})
-    for item in overrides:
-        if "=" not in item:
-            raise ValueError(f"--set wants key=value, got {item!r}")
-        key, text = item.split("=", 1)
-        node = values
-        parts = key.split(".")
-        for p in parts[:-1]:
-            if not isinstance(node.get(p), dict):
-                raise KeyError(f"unknown config field {key}")
-            node = node[p]
-        if parts[-1] not in node or isinstance(node[parts[-1]], dict):
-            raise KeyError(f"unknown config field {key}")
-        node[parts[-1]] = _parse_value(text, node[parts[-1]])
+    apply_overrides(values, overrides)
     return geometry_config_from_dict(values)
 
 
@@ -122,4 +111,4 @@ def geometry_config_from_dict(values: dict[str, Any]) -> GeometryConfig:
     """Rebuild the (nested) dataclass from ``dataclasses.asdict`` output; unknown keys raise ``KeyError``."""
     base = dataclasses.asdict(GeometryConfig())
     _update(base, values)
-    return _merge(GeometryConfig, base, "")
+    return dataclass_from_dict(GeometryConfig, base)
