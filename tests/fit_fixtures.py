@@ -46,7 +46,7 @@ def relight_envs() -> dict[str, SGMixture]:
     return {"dusk": dusk, "dawn": dawn}
 
 
-def scene_material(x: torch.Tensor) -> Material:
+def scene_material(x: torch.Tensor, n: torch.Tensor | None = None) -> Material:
     red = (x[..., 0] > 0).float().unsqueeze(-1)
     albedo = red * torch.tensor([0.7, 0.2, 0.15]) + (1 - red) * torch.tensor([0.3, 0.5, 0.7])
     roughness = torch.where(x[..., 2] > -0.38, 0.3, 0.8).to(x.dtype)

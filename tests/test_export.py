@@ -117,8 +117,10 @@ def image(doc: dict, blob: bytes, texture: int) -> np.ndarray:
     return np.asarray(pil, np.float32) / 255.0
 
 
-def field_at(run: Path, points_world: np.ndarray):
-    m = material_at(load_run(run).model, torch.from_numpy(np.ascontiguousarray(points_world)).float())
+def field_at(run: Path, points_world: np.ndarray, normals_world: np.ndarray):
+    n = normals_world / np.linalg.norm(normals_world, axis=-1, keepdims=True)
+    m = material_at(load_run(run).model, torch.from_numpy(np.ascontiguousarray(points_world)).float(),
+                    torch.from_numpy(np.ascontiguousarray(n)).float())
     return m.albedo.numpy(), m.roughness.numpy()
 
 
@@ -163,11 +165,12 @@ def test_glb_material_axes_and_bake_match_the_field(glb, run):
     # the baked textures at points of the mesh reproduce the material field there
     scores = {}
     for name, w in (("centroid", np.full(3, 1 / 3)), ("inner", np.array([0.6, 0.3, 0.1])), ("vertex", None)):
+        nw = normal @ Z_UP_TO_Y_UP
         if w is None:
-            p, q = world, uv
+            p, q, nrm = world, uv, nw
         else:
-            p, q = (world[faces] * w[:, None]).sum(1), (uv[faces] * w[:, None]).sum(1)
-        albedo, rough = field_at(run, p)
+            p, q, nrm = ((a[faces] * w[:, None]).sum(1) for a in (world, uv, nw))
+        albedo, rough = field_at(run, p, nrm)
         assert albedo.std(0).min() > 0.03 and rough.std() > 0.03           # the field does vary
         scores[name] = (psnr(srgb_to_linear(bilinear(base, q)), albedo), psnr(bilinear(mr, q)[:, 1], rough))
         flipped = q * [1, -1] + [0, 1]                                       # the mistake this guards against

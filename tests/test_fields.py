@@ -66,6 +66,24 @@ def test_material_field_ranges_and_override():
     assert torch.all(fixed.roughness == 0.5)
 
 
+def test_material_normal_offset_encodes_the_offset_point_and_separates_thin_wall_faces():
+    torch.manual_seed(3)
+    box = (torch.zeros(3), torch.ones(3))
+    plain = MaterialField(HashGrid(4, 2, 12, 4, 16, init_scale=3.0), 16, 1, box)   # cells > the wall
+    sided = MaterialField(HashGrid(4, 2, 12, 4, 16, init_scale=3.0), 16, 1, box, normal_offset=0.1)
+    sided.load_state_dict(plain.state_dict())
+    x = 0.3 + 0.4 * torch.rand(200, 3)
+    n = torch.nn.functional.normalize(torch.randn(200, 3), dim=-1)
+    assert torch.allclose(sided(x, n).albedo, plain(x + 0.1 * n).albedo)
+    # the two faces of a wall 0.01 thick: the same material without the offset, not with it
+    face_in, face_out = x, x + 0.01 * n
+    gap_plain = (plain(face_in).albedo - plain(face_out).albedo).abs().mean()
+    gap_sided = (sided(face_in, -n).albedo - sided(face_out, n).albedo).abs().mean()
+    assert gap_sided > 5 * gap_plain
+    with pytest.raises(ValueError, match="normals"):
+        sided(x)
+
+
 @pytest.mark.parametrize("lobes", [16, 128])
 def test_sg_environment_starts_near_a_constant_radiance(lobes):
     env = SGEnvironment(num_lobes=lobes, sharpness_min=5.0, sharpness_max=3000.0, init_radiance=0.5)

@@ -69,7 +69,7 @@ def sky(height: int = 16, width: int = 32, sun: bool = False) -> torch.Tensor:
 
 def constant(albedo, roughness: float):
     a = torch.tensor(albedo, dtype=torch.float32)
-    return lambda x: Material(a.expand(len(x), 3), torch.full((len(x),), roughness))
+    return lambda x, n: Material(a.expand(len(x), 3), torch.full((len(x),), roughness))
 
 
 def mean_and_se(values: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
@@ -146,7 +146,7 @@ def test_one_bounce_path_tracer_matches_the_mis_estimator_with_visibility():
         shadow = spawn_rays(x.unsqueeze(1).expand_as(wi), ng.unsqueeze(1).expand_as(wi), wi, 1e-4 * geometry.scale)
         return env.radiance(wi) * (~geometry.occluded(shadow)).unsqueeze(-1)
 
-    est = estimate_Lo(n, -d[v], mat(x), env, incoming, spp // 3 + 1, torch.Generator().manual_seed(4))
+    est = estimate_Lo(n, -d[v], mat(x, n), env, incoming, spp // 3 + 1, torch.Generator().manual_seed(4))
     diff = pt_px[v] - est.rgb                                 # same points: the signal cancels
     m, se = mean_and_se(diff)
     assert v.sum() > 100

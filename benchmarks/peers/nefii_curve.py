@@ -54,8 +54,9 @@ def make_trainer(cfg: FitConfig, data: Path) -> tuple[Trainer, MeshGeometry]:
     return Trainer(cfg, model, geometry, pixels, device), geometry
 
 
-def snapshot_scores(trainer: Trainer, views: TestViews, points: torch.Tensor) -> dict[str, float]:
-    mat = material_at(trainer.model, points)
+def snapshot_scores(trainer: Trainer, views: TestViews, points: tuple[torch.Tensor, torch.Tensor]
+                    ) -> dict[str, float]:
+    mat = material_at(trainer.model, *points)
     albedo = split_views(views, mat.albedo.cpu().numpy())
     rough = split_views(views, mat.roughness.cpu().numpy())
     return material_scores(views, albedo, rough)

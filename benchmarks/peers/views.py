@@ -34,6 +34,8 @@ class ViewHits:
     """(M, 3) float64 hit points of the valid pixels, row-major order"""
     triangle: np.ndarray
     """(M,) int64 triangle of each hit"""
+    normal: np.ndarray
+    """(M, 3) float32 unit shading normals of the hits"""
 
 
 @dataclass(frozen=True)
@@ -57,7 +59,7 @@ def cast_test_views(scene: SceneData, geometry: MeshGeometry) -> TestViews:
         hit = geometry.intersect(Rays(o.reshape(-1, 3).float(), d.reshape(-1, 3).float()))
         valid = hit.valid.numpy()
         hits.append(ViewHits(valid.reshape(scene.height, scene.width), hit.position.numpy()[valid].astype(np.float64),
-                             hit.triangle_id.numpy()[valid]))
+                             hit.triangle_id.numpy()[valid], hit.normal.numpy()[valid]))
         if gt is not None and gt.mask is not None:
             masks.append(gt.mask[v].numpy().astype(bool))
         elif scene.masks is not None:
@@ -142,9 +144,10 @@ def textures_at_views(views: TestViews, uvs: list[np.ndarray], base_color: np.nd
     return albedo, rough
 
 
-def positions(views: TestViews) -> torch.Tensor:
-    """Every view's hit points, concatenated (for a field decoded at them)."""
-    return torch.from_numpy(np.concatenate([h.position for h in views.hits]).astype(np.float32))
+def positions(views: TestViews) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every view's hit points and shading normals, concatenated (for a field decoded at them)."""
+    return tuple(torch.from_numpy(np.concatenate([getattr(h, k) for h in views.hits]).astype(np.float32))
+                 for k in ("position", "normal"))
 
 
 def split_views(views: TestViews, values: np.ndarray) -> list[np.ndarray]:

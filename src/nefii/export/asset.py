@@ -53,8 +53,9 @@ def bake_asset(model: NeFIIModel, vertices: np.ndarray, faces: np.ndarray, norma
     """UV-unwrap the mesh into a ``size``-square atlas and bake ``model``'s material over it."""
     atlas = unwrap(vertices, faces, size)
     positions = np.asarray(vertices, dtype=np.float64)[atlas.source]
-    textures = bake_textures(model, positions, atlas, progress)
-    return BakedAsset(atlas, positions.astype(np.float32), np.asarray(normals, np.float32)[atlas.source], textures)
+    atlas_normals = np.asarray(normals, np.float32)[atlas.source]
+    textures = bake_textures(model, positions, atlas_normals, atlas, progress)
+    return BakedAsset(atlas, positions.astype(np.float32), atlas_normals, textures)
 
 
 # ---------------------------------------------------------------- textures

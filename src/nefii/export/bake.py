@@ -161,9 +161,10 @@ def _upsample2(c: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- baking
-def bake_textures(model: NeFIIModel, vertices: Float[np.ndarray, "V 3"], atlas: UVAtlas,
-                  progress: Callable[[int, int], None] | None = None) -> BakedTextures:
-    """Albedo and roughness textures of ``model`` over ``atlas`` (``vertices`` are the atlas's, in world space).
+def bake_textures(model: NeFIIModel, vertices: Float[np.ndarray, "V 3"], normals: Float[np.ndarray, "V 3"],
+                  atlas: UVAtlas, progress: Callable[[int, int], None] | None = None) -> BakedTextures:
+    """Albedo and roughness textures of ``model`` over ``atlas`` (``vertices`` and unit vertex ``normals``
+    are the atlas's, in world space; a texel's normal is interpolated as the ray caster's shading normal).
 
     ``progress(n, total)`` is told after each chunk of ``n`` of the ``total`` texels is decoded.
     """
@@ -171,8 +172,11 @@ def bake_textures(model: NeFIIModel, vertices: Float[np.ndarray, "V 3"], atlas: 
     texels = rasterise(atlas.uv, atlas.faces, S)
     corners = np.asarray(vertices, dtype=np.float64)[atlas.faces[texels.triangle]]   # (N, 3, 3)
     points = torch.from_numpy((texels.bary[..., None] * corners).sum(1)).float()
+    nrm = (texels.bary[..., None] * np.asarray(normals, dtype=np.float64)[atlas.faces[texels.triangle]]).sum(1)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-30)
     total = len(points)
-    mat = material_at(model, points, progress=None if progress is None else (lambda n: progress(n, total)))
+    mat = material_at(model, points, torch.from_numpy(nrm).float(),
+                      progress=None if progress is None else (lambda n: progress(n, total)))
     values = torch.cat([mat.albedo, mat.roughness.unsqueeze(-1)], -1).cpu().double().numpy()
     image = np.zeros((S, S, 4))
     covered = np.zeros((S, S), dtype=bool)

@@ -27,10 +27,11 @@ def build_model(cfg: FitConfig, box: tuple[Tensor, Tensor], features: FeatureFie
     ``features`` (a frozen SDF's), the material and the cache take its feature vector as input too."""
     lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in box)
     pad = 0.05 * (hi - lo).max()
-    box = (lo - pad, hi + pad)
+    offset = cfg.material_offset * float((hi - lo).norm())
+    box, material_box = (lo - pad, hi + pad), (lo - pad - offset, hi + pad + offset)
     torch.manual_seed(cfg.seed)
-    material = MaterialField(make_encoding(cfg.material.encoding), cfg.material.hidden, cfg.material.layers, box,
-                             features)
+    material = MaterialField(make_encoding(cfg.material.encoding), cfg.material.hidden, cfg.material.layers,
+                             material_box, features, normal_offset=offset)
     cache = RadianceCache(make_encoding(cfg.cache.encoding), cfg.cache_dir_freqs, cfg.cache.hidden,
                           cfg.cache.layers, box, features)
     if cfg.light.kind == "sg":

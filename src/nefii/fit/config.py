@@ -122,6 +122,9 @@ class FitConfig:
     SDF and feeds its feature vector f to the material and the cache, as the paper does"""
     material: NetworkConfig = field(default_factory=NetworkConfig)
     """material field M"""
+    material_offset: float = 0.0
+    """M encodes ``x + offset * n`` (n the shading normal), offset as a fraction of the scene's bounding-box
+    diagonal: the faces of a thin wall then do not share the encoding's coarse cells (0: encode x, the paper)"""
     cache: NetworkConfig = field(default_factory=NetworkConfig)
     """radiance cache L"""
     cache_dir_freqs: int = 4

@@ -81,7 +81,8 @@ class LossTerms:
 
 @dataclass(frozen=True)
 class SmoothnessPrior:
-    """``albedo |a(x) - a(x + d)|_1 + roughness |r(x) - r(x + d)|_1``, ``d ~ N(0, radius^2)`` per axis."""
+    """``albedo |a(x) - a(x + d)|_1 + roughness |r(x) - r(x + d)|_1``, ``d ~ N(0, radius^2)`` per axis of the
+    tangent plane at ``x``: smoothness along the surface, never through a thin wall to its other face."""
 
     albedo: float = 0.0
     roughness: float = 0.0
@@ -93,10 +94,11 @@ class SmoothnessPrior:
         return self.albedo > 0 or self.roughness > 0
 
 
-def smoothness(model: NeFIIModel, x: Tensor, material, prior: SmoothnessPrior, roughness_override: float | None,
-               generator: torch.Generator | None) -> Tensor:
+def smoothness(model: NeFIIModel, x: Tensor, n: Tensor, material, prior: SmoothnessPrior,
+               roughness_override: float | None, generator: torch.Generator | None) -> Tensor:
     d = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype) * prior.radius
-    other = model.material(x + d, roughness_override=roughness_override)
+    d = d - (d * n).sum(-1, keepdim=True) * n                                 # in the tangent plane
+    other = model.material(x + d, n, roughness_override=roughness_override)
     loss = prior.albedo * (material.albedo - other.albedo).abs().mean()
     if roughness_override is None:
         loss = loss + prior.roughness * (material.roughness - other.roughness).abs().mean()
@@ -120,7 +122,8 @@ def observed_loss(model: NeFIIModel, geometry: Geometry, batch: Pixels, num_samp
     total = l_render + beta1 * l_cache + beta2 * l_bg
     l_smooth = None
     if prior.active:
-        l_smooth = smoothness(model, pts.position, traced.material, prior, roughness_override, generator)
+        l_smooth = smoothness(model, pts.position, pts.normal, traced.material, prior, roughness_override,
+                              generator)
         total = total + l_smooth
     return LossTerms(total, l_render, l_cache, l_bg, l_smooth), traced
 

@@ -91,7 +91,7 @@ def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_sa
                generator: torch.Generator | None, transport: Transport = Transport(),
                roughness_override: float | None = None, ray_offset: float = 1e-4) -> PathTraced:
     """Eq. 2-4 at ``pts``: the path-traced colour, the material there, and the secondary hits."""
-    material = model.material(pts.position, roughness_override=roughness_override)
+    material = model.material(pts.position, pts.normal, roughness_override=roughness_override)
     samples = sample_mis_directions(pts.normal, pts.wo, material.roughness.detach(), model.env.light_sampler(),
                                     num_samples, generator)
     wi = samples.wi                                                            # (B, S, 3)

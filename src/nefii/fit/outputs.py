@@ -123,17 +123,18 @@ def source_config(source: GeometrySource):
 
 
 @torch.no_grad()
-def material_at(model: NeFIIModel, points: torch.Tensor, chunk: int = 65536,
+def material_at(model: NeFIIModel, points: torch.Tensor, normals: torch.Tensor, chunk: int = 65536,
                 progress: Callable[[int], None] | None = None) -> Material:
-    """The fitted material at world points ``(N, 3)``, decoded in chunks without gradient.
+    """The fitted material at world surface points ``(N, 3)`` with unit shading normals ``(N, 3)``,
+    decoded in chunks without gradient.
 
     Returns albedo ``(N, 3)`` (linear, [0, 1]) and roughness ``(N,)`` on the model's device;
     ``progress(n)`` is called with the number of points done after each chunk.
     """
     device = next(model.parameters()).device
     albedo, roughness = [], []
-    for part in points.split(chunk):
-        m = model.material(part.to(device=device, dtype=torch.float32))
+    for part, nrm in zip(points.split(chunk), normals.split(chunk)):
+        m = model.material(part.to(device=device, dtype=torch.float32), nrm.to(device=device, dtype=torch.float32))
         albedo.append(m.albedo)
         roughness.append(m.roughness)
         if progress is not None:

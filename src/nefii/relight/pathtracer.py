@@ -41,8 +41,9 @@ from ..render.mis import power_heuristic, power_heuristic_over_pdf
 from .bsdf import f_r, pdf_bsdf, sample_bsdf, specular_probability
 from .environment import Environment
 
-MaterialFn = Callable[[Float[Tensor, "B 3"]], Material]
-"""``x -> Material`` at world points (the fitted material field, or an analytic one in tests)."""
+MaterialFn = Callable[[Float[Tensor, "B 3"], Float[Tensor, "B 3"]], Material]
+"""``(x, n) -> Material`` at world surface points with unit shading normals (the fitted material
+field, or an analytic one in tests)."""
 
 RR_MAX_SURVIVAL = 0.95
 
@@ -99,7 +100,7 @@ def trace_paths(rays: Rays, geometry: Geometry, material: MaterialFn, env: Envir
         idx, β, x, n, ng, wo = _take(front, idx, β, x, n, ng, wo)
         if len(idx) == 0:
             break
-        m = material(x)
+        m = material(x, n)
         frame = Frame.from_normal(n)
         wo_l = frame.to_local(view_above_surface(n, wo))
         alpha = alpha_from_roughness(m.roughness)

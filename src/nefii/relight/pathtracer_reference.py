@@ -37,7 +37,7 @@ def trace_paths_reference(rays: Rays, geometry: Geometry, material: MaterialFn, 
             break
         frame = Frame.from_normal(n)
         wi_l = sample_cosine(torch.rand(len(idx), 2, generator=generator, device=o.device, dtype=o.dtype))
-        β = β * f_r(material(x), frame.to_local(view_above_surface(n, wo)), wi_l, settings.f0,
+        β = β * f_r(material(x, n), frame.to_local(view_above_surface(n, wo)), wi_l, settings.f0,
                     settings.specular) * math.pi
         wi = frame.to_world(wi_l)
         hit = geometry.intersect(spawn_rays(x, ng, wi, offset))

@@ -64,7 +64,7 @@ def albedo_scale_from_ground_truth(material: MaterialFn, geometry: Geometry, sce
         hit = geometry.intersect(Rays(o.reshape(-1, 3).float().to(device), d.reshape(-1, 3).float().to(device)))
         pred = torch.zeros(H * W, 3, device=device)
         for c in hit.valid.nonzero().squeeze(-1).split(1 << 16):
-            pred[c] = material(hit.position[c]).albedo.float()
+            pred[c] = material(hit.position[c], hit.normal[c]).albedo.float()
         mask = hit.valid.cpu().numpy().reshape(H, W)
         mask &= (gt.mask[v] if gt.mask is not None else
                  scene.masks[v] if scene.masks is not None else torch.ones(H, W, dtype=torch.bool)).numpy()
@@ -73,12 +73,12 @@ def albedo_scale_from_ground_truth(material: MaterialFn, geometry: Geometry, sce
 
 
 def scaled_material(material: MaterialFn, scale: np.ndarray | None) -> MaterialFn:
-    """``x -> Material(clamp(scale * albedo, 0, 1), roughness)``; ``material`` itself without a scale."""
+    """``(x, n) -> Material(clamp(scale * albedo, 0, 1), roughness)``; ``material`` itself without a scale."""
     if scale is None:
         return material
 
-    def scaled(x: torch.Tensor) -> Material:
-        m = material(x)
+    def scaled(x: torch.Tensor, n: torch.Tensor) -> Material:
+        m = material(x, n)
         s = torch.as_tensor(scale, dtype=m.albedo.dtype, device=m.albedo.device)
         return Material((m.albedo * s).clamp(0.0, 1.0), m.roughness)
 
