@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -16,9 +17,10 @@ from fit_fixtures import write_rendered_scene
 from nefii.cli.main import main
 from nefii.evaluate.table1 import METRIC_KEYS
 from nefii.fit.config import FitConfig, config_from_dict, config_to_dict, resolve_config
-from nefii.fit.losses import SecondaryHitBuffer
+from nefii.fit.losses import SecondaryHitBuffer, SmoothnessPrior, smoothness
 from nefii.fit.model import SurfacePoints
 from nefii.fit.policies import Alternation, RoughnessWarmup
+from nefii.render.brdf import Material
 
 
 @pytest.fixture(scope="module")
@@ -126,6 +128,19 @@ def test_policies():
     a = Alternation(every=10)
     assert [s for s in range(30) if a.unobserved(s)] == [9, 19, 29]
     assert not any(Alternation(every=10, enabled=False).unobserved(s) for s in range(30))
+
+
+def test_smoothness_prior_compares_neighbours_in_the_tangent_plane():
+    """Albedo that changes only across a wall (along z): a prior along the surface z = 0 sees no change,
+    and the same prior at points whose normal lies in the plane does."""
+    wall = SimpleNamespace(material=lambda x, n, roughness_override=None: Material(
+        torch.sigmoid(200.0 * x[..., 2:3]).expand(*x.shape[:-1], 3), torch.full(x.shape[:-1], 0.5)))
+    x = torch.rand(4096, 3) * torch.tensor([1.0, 1.0, 0.0])
+    prior = SmoothnessPrior(albedo=1.0, radius=0.05)
+    up, side = torch.tensor([0.0, 0.0, 1.0]).expand(4096, 3), torch.tensor([1.0, 0.0, 0.0]).expand(4096, 3)
+    g = torch.Generator().manual_seed(0)
+    assert smoothness(wall, x, up, wall.material(x, up), prior, None, g).item() == 0.0
+    assert smoothness(wall, x, side, wall.material(x, side), prior, None, g).item() > 0.3
 
 
 def test_secondary_buffer_is_a_ring():
