@@ -157,8 +157,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
 }
 """``cpu``: designed for 2 CPU cores; ``paper``: the paper's sizes, for a GPU; ``tiny``: tests.
-``material_offset`` 0.04 in ``cpu``: on the bowl (a wall 2.6% of the diagonal thick) albedo PSNR 22.7 -> 27.4 dB
-and roughness MSE 0.069 -> 0.030 (benchmarks/results/quality.md); ``paper`` keeps the paper's M(x, f)."""
+``material_offset`` 0.04 in ``cpu``: albedo PSNR bowl 22.7 -> 27.4 dB (a wall 2.6% of the diagonal thick),
+corner +1.8, cup -0.3, leaning -1.3 dB (docs/design.md, fit step 9); ``paper`` keeps the paper's M(x, f)."""
 
 
 def config_from_dict(values: dict[str, Any]) -> FitConfig:
