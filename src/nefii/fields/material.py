@@ -22,7 +22,7 @@ class MaterialField(nn.Module):
     ``normal_offset`` (world units, 0: off) encodes the point ``x + normal_offset * n`` instead of
     ``x``, ``n`` the unit shading normal there. On a fixed surface this is only a change of
     coordinates (the albedo is still a function of the surface point), but the two faces of a
-    thin wall, a few millimetres apart in space, are pushed apart by twice the offset, so they no
+    thin wall, close together in space, are pushed apart by twice the offset, so they no
     longer share the encoding's coarse cells: without it a bowl's outside takes the colour of its
     inside and the light's lower hemisphere absorbs the difference.
     """
