@@ -164,8 +164,8 @@ def test_glb_material_axes_and_bake_match_the_field(glb, run):
 
     # the baked textures at points of the mesh reproduce the material field there
     scores = {}
+    nw = normal @ Z_UP_TO_Y_UP
     for name, w in (("centroid", np.full(3, 1 / 3)), ("inner", np.array([0.6, 0.3, 0.1])), ("vertex", None)):
-        nw = normal @ Z_UP_TO_Y_UP
         if w is None:
             p, q, nrm = world, uv, nw
         else:

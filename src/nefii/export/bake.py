@@ -170,9 +170,10 @@ def bake_textures(model: NeFIIModel, vertices: Float[np.ndarray, "V 3"], normals
     """
     S = atlas.size
     texels = rasterise(atlas.uv, atlas.faces, S)
-    corners = np.asarray(vertices, dtype=np.float64)[atlas.faces[texels.triangle]]   # (N, 3, 3)
+    tri = atlas.faces[texels.triangle]                                                 # (N, 3)
+    corners = np.asarray(vertices, dtype=np.float64)[tri]                              # (N, 3, 3)
     points = torch.from_numpy((texels.bary[..., None] * corners).sum(1)).float()
-    nrm = (texels.bary[..., None] * np.asarray(normals, dtype=np.float64)[atlas.faces[texels.triangle]]).sum(1)
+    nrm = (texels.bary[..., None] * np.asarray(normals, dtype=np.float64)[tri]).sum(1)
     nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-30)
     total = len(points)
     mat = material_at(model, points, torch.from_numpy(nrm).float(),

@@ -39,12 +39,12 @@ class MaterialField(nn.Module):
                 roughness_override: float | None = None) -> Material:
         """The material at surface points ``x`` with unit shading normals ``normal`` (needed when
         ``normal_offset`` > 0; the frozen SDF's features, if any, are read at ``x`` itself)."""
+        x_enc = x
         if self.normal_offset > 0:
             if normal is None:
                 raise ValueError("this material field encodes x + offset * n: pass the surface normals")
-            u = (x + self.normal_offset * normal - self.box_lo) / self.box_size
-        else:
-            u = (x - self.box_lo) / self.box_size
+            x_enc = x + self.normal_offset * normal
+        u = (x_enc - self.box_lo) / self.box_size
         h = self.encoding(u)
         if self.features is not None:
             h = torch.cat([h, self.features(x)], -1)
