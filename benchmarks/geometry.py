@@ -1,7 +1,7 @@
 """The geometry stage on the built-in scenes: reconstructed mesh against the scene's mesh.ply, and the
 fit's albedo / roughness with reconstructed against ground-truth geometry.
 
-    python benchmarks/geometry.py [--scenes bowl cup ...] [--res 64] [--views 64] [--masks on off]
+    python benchmarks/geometry.py [--scenes bowl cup ...] [--res 128] [--views 64] [--masks on off]
                                   [--fits [SCENE ...]] [--fit-res 128] [--jobs 2] [--set key=value ...]
 
 For each scene (and each masks setting) runs ``nefii geometry`` (``cpu`` preset) and measures the
@@ -36,7 +36,7 @@ def nefii(*args: str) -> None:
 
 
 def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[str]) -> dict:
-    out = CACHE / "geometry" / f"{name}_masks_{masks}"
+    out = CACHE / "geometry" / f"{data.name}_masks_{masks}"
     if not (out / "geometry_stats.json").exists():
         sets = [x for kv in [*extra, f"threads={threads}"] for x in ("--set", kv)]
         resume = ["--resume"] if (out / "checkpoints").exists() else []
@@ -76,7 +76,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--scenes", nargs="+", default=["bowl", "leaning", "cup", "corner"])
     ap.add_argument("--masks", nargs="+", default=["on"], choices=["on", "off"])
-    ap.add_argument("--res", type=int, default=64)
+    ap.add_argument("--res", type=int, default=128)
     ap.add_argument("--views", type=int, default=64)
     ap.add_argument("--fits", nargs="*", metavar="SCENE", default=None,
                     help="also fit materials on the reconstructed geometry (of these scenes; none named: all), at "

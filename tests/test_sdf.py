@@ -26,6 +26,8 @@ from nefii.sdf.networks import SDFNetwork
 from nefii.sdf.normalization import Normalization, look_at_center, normalization_from_cameras
 from nefii.sdf.outputs import load_sdf
 from nefii.sdf.trace import SDFGeometry
+from nefii.sdf.losses import level_set_area, normal_variation
+from nefii.sdf.train import draw_rays, uniform_in_ball
 from nefii.sdf.volume import (composite_weights, neus_alpha, sample_pdf, sphere_bounds, stratified_depths,
                               upsample_depths)
 
@@ -120,6 +122,22 @@ def sphere_masks(cams: Cameras, center, radius: float) -> torch.Tensor:
     return torch.stack(masks)
 
 
+def test_foreground_biased_rays_are_reweighted_to_the_mean_over_all_pixels():
+    gen = torch.Generator().manual_seed(0)
+    pixels = 1000
+    mask = torch.zeros(pixels, dtype=torch.bool)
+    mask[::7] = True                                      # 143 foreground pixels
+    value = torch.rand(pixels, generator=gen) + 2.0 * mask.float()
+    i, w = draw_rays(pixels, mask, mask.nonzero().squeeze(-1), 200_000, 0.75, gen, torch.device("cpu"))
+    assert mask[i].float().mean() == pytest.approx(0.75 + 0.25 * 143 / pixels, abs=0.01)
+    assert float((w * value[i]).sum() / w.sum()) == pytest.approx(float(value.mean()), rel=0.01)
+    # the foreground alone is still drawn uniformly: every foreground pixel about equally often
+    counts = torch.bincount(i[mask[i]], minlength=pixels)[mask].float()
+    assert counts.std() / counts.mean() < 0.05
+    j, none = draw_rays(pixels, None, None, 64, 0.75, gen, torch.device("cpu"))
+    assert none is None and len(j) == 64
+
+
 def test_the_cameras_look_at_center_is_found():
     cams = ring_cameras()
     torch.testing.assert_close(look_at_center(cams.c2w), torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64))
@@ -175,6 +193,35 @@ def test_the_sdf_network_starts_as_an_exact_sphere():
     torch.testing.assert_close(sdf, u.norm(dim=-1) - 0.5)
     torch.testing.assert_close(grad.norm(dim=-1), torch.ones(500))
     assert feat.shape == (500, 4)
+
+
+def test_the_minimal_surface_prior_measures_the_level_sets_area():
+    """``mean exp(-tau |f|)`` over the ball for exact spheres: ``(2 / tau) A / V``, so a sphere of twice
+    the radius scores four times as much."""
+    gen = torch.Generator().manual_seed(0)
+    u = uniform_in_ball(400_000, gen, torch.device("cpu"))
+    tau = 200.0
+    a = {r: float(level_set_area(u.norm(dim=-1) - r, tau)) for r in (0.3, 0.6)}
+    for r, value in a.items():
+        assert value == pytest.approx((2 / tau) * 4 * math.pi * r**2 / (4 / 3 * math.pi), rel=0.05)
+    assert a[0.6] / a[0.3] == pytest.approx(4.0, rel=0.05)
+
+
+def test_the_normal_prior_measures_curvature_along_the_surface():
+    """On the network's initial exact sphere of radius r, the normal turns by |t| / r over a tangent
+    step t: halving r doubles the prior; a step along the normal (across a wall) would change nothing."""
+    gen = torch.Generator().manual_seed(0)
+    values = {}
+    for r in (0.25, 0.5):
+        torch.manual_seed(0)
+        net = SDFNetwork(HashGrid(4, 2, 12, 4, 16), 16, 1, 4, init_radius=r)
+        d = torch.randn(4000, 3, generator=gen)
+        x = r * d / d.norm(dim=-1, keepdim=True)
+        values[r] = float(normal_variation(net, x, 0.01, gen))
+    assert values[0.25] / values[0.5] == pytest.approx(2.0, rel=0.1)
+    # std 0.01 per axis in the 2-d tangent plane: E|t| = 0.01 sqrt(pi / 2); dn = t / r points in a
+    # uniformly random direction, whose L1 norm is 3 E|cos| = 1.5 times its length on average
+    assert values[0.5] == pytest.approx(0.01 * math.sqrt(math.pi / 2) / 0.5 * 1.5, rel=0.05)
 
 
 def test_coarse_to_fine_switches_hash_levels_on_in_order():

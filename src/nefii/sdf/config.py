@@ -17,6 +17,10 @@ class GeometryConfig:
     """optimisation steps"""
     batch_rays: int = 512
     """rays per step"""
+    foreground_rays: float = 0.5
+    """with masks, this fraction of each batch is drawn from the pixels inside the masks and the rest
+    from all pixels: more rays where the colour loss has something to say (the mask loss is
+    reweighted so that it stays the mean over all pixels)"""
     samples: int = 32
     """stratified samples per ray inside the unit sphere"""
     importance: int = 32
@@ -33,6 +37,23 @@ class GeometryConfig:
     """learning rates fall exponentially to this fraction at the last step"""
     eikonal_weight: float = 0.1
     """weight of the eikonal loss ``(|grad f| - 1)^2`` (NeuS: 0.1)"""
+    area_weight: float = 0.1
+    """weight of a minimal-surface prior, the mean of ``exp(-area_sharpness |f(u)|)`` over
+    ``area_points`` random points in the ball (proportional to the area of the zero level set, as
+    SparseNeuS's sparseness loss): where no view constrains the surface (the underside of an object
+    standing on something, seen only from above) it spans the observed edges by the smallest
+    surface instead of keeping the initial sphere. Too strong, it lids hollows the views look into
+    (the bowl at 0.3; see docs/design.md)"""
+    area_sharpness: float = 50.0
+    """``tau`` of the minimal-surface prior, in 1 / normalised units"""
+    area_points: int = 2048
+    """random points per step of the minimal-surface prior"""
+    normal_smoothness: float = 0.0
+    """weight of a prior that the surface normal varies slowly along the surface: ``|n(x) - n(x + t)|``
+    at the rendered surface points ``x`` with ``t`` a random step in the tangent plane of std
+    ``normal_radius`` (a hash grid's gradient is local to its cells and turns bumpy without it)"""
+    normal_radius: float = 0.02
+    """std of the tangent step of the normal prior, in normalised units"""
     mask_weight: float = 0.1
     """weight of the mask loss, binary cross-entropy of the rendered opacity (NeuS: 0.1)"""
     anneal_end: float = 0.2
@@ -77,7 +98,7 @@ GEOMETRY_PRESETS: dict[str, dict[str, Any]] = {
     },
     "tiny": {
         "steps": 40, "batch_rays": 64, "samples": 8, "importance": 8, "importance_rounds": 1, "background_samples": 4,
-        "coarse_to_fine": 0.5, "start_levels": 2,
+        "coarse_to_fine": 0.5, "start_levels": 2, "area_points": 256,
         "feature_dim": 4, "mesh_resolution": 32, "from_mesh_points": 1024, "checkpoint_every_s": 60.0,
         "sdf": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
         "color": {"hidden": 16, "layers": 1},

@@ -5,6 +5,7 @@ random generator's state, progress bar); they differ in what a step's loss is.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -18,7 +19,7 @@ from tqdm import tqdm
 
 from ..io.checkpoints import latest_checkpoint, save_checkpoint
 from .config import GeometryConfig
-from .losses import GeometryLoss, geometry_loss
+from .losses import GeometryLoss, geometry_loss, level_set_area, normal_variation
 from .model import NeuSModel, render_rays
 
 
@@ -34,7 +35,10 @@ def uniform_in_ball(n: int, generator: torch.Generator, device: torch.device) ->
 
 @dataclass
 class ImageObjective:
-    """NeuS: render random training rays, compare colours (and opacity with the masks)."""
+    """NeuS: render random training rays, compare colours (and opacity with the masks).
+
+    With masks, ``cfg.foreground_rays`` of each batch comes from the masked pixels, the rest from all
+    pixels (see :func:`draw_rays`)."""
 
     cfg: GeometryConfig
     origins: Float[Tensor, "P 3"]
@@ -43,15 +47,45 @@ class ImageObjective:
     rgb: Float[Tensor, "P 3"]
     mask: Bool[Tensor, " P"] | None
 
+    def __post_init__(self) -> None:
+        self.foreground = None if self.mask is None else self.mask.nonzero().squeeze(-1)
+
     def loss(self, model: NeuSModel, step: int, generator: torch.Generator) -> GeometryLoss:
         cfg = self.cfg
-        i = torch.randint(len(self.origins), (cfg.batch_rays,), generator=generator, device=self.origins.device)
+        i, weight = draw_rays(len(self.origins), self.mask, self.foreground, cfg.batch_rays,
+                              cfg.foreground_rays if self.mask is not None else 0.0, generator, self.origins.device)
         anneal = min(1.0, step / max(cfg.anneal_end * cfg.steps, 1.0))
         out = render_rays(model, self.origins[i], self.directions[i], cfg, generator, train=True, cos_anneal=anneal)
         extra = uniform_in_ball(cfg.batch_rays, generator, self.origins.device)
         _, g_extra, _ = model.sdf.with_gradient(extra, create_graph=True)
-        return geometry_loss(out, self.rgb[i], None if self.mask is None else self.mask[i], g_extra,
-                             cfg.eikonal_weight, cfg.mask_weight)
+        terms = geometry_loss(out, self.rgb[i], None if self.mask is None else self.mask[i], g_extra,
+                              cfg.eikonal_weight, cfg.mask_weight, weight)
+        hit = out.opacity.detach() > 0.5
+        surface = (self.origins[i] + out.depth.detach().unsqueeze(-1) * self.directions[i])[hit]
+        if cfg.area_weight > 0:
+            u = uniform_in_ball(cfg.area_points, generator, self.origins.device)
+            area = level_set_area(model.sdf.sdf(u), cfg.area_sharpness)
+            terms = dataclasses.replace(terms, total=terms.total + cfg.area_weight * area)
+        if cfg.normal_smoothness > 0:
+            prior = normal_variation(model.sdf, surface, cfg.normal_radius, generator)
+            terms = dataclasses.replace(terms, total=terms.total + cfg.normal_smoothness * prior)
+        return terms
+
+
+def draw_rays(pixels: int, mask: Bool[Tensor, " P"] | None, foreground: Tensor | None, n: int, fraction: float,
+              generator: torch.Generator, device: torch.device) -> tuple[Tensor, Tensor | None]:
+    """``n`` pixel indices, ``round(fraction n)`` uniform over ``foreground`` (the indices where
+    ``mask`` is True) and the rest uniform over all ``pixels``, with each one's weight
+    ``(1 / pixels) / q`` under the mixture density ``q`` (so that a weighted mean over the batch
+    estimates the mean over all pixels); weights are None when no ray is drawn from the foreground."""
+    k = round(fraction * n) if mask is not None and foreground is not None and len(foreground) > 0 else 0
+    if k == 0:
+        return torch.randint(pixels, (n,), generator=generator, device=device), None
+    fg = foreground[torch.randint(len(foreground), (k,), generator=generator, device=device)]
+    i = torch.cat([fg, torch.randint(pixels, (n - k,), generator=generator, device=device)])
+    a = k / n
+    q = (1.0 - a) / pixels + a * mask[i].float() / len(foreground)
+    return i, (1.0 / pixels) / q
 
 
 class GeometryTrainer:
