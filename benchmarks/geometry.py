@@ -84,6 +84,7 @@ def main() -> None:
     ap.add_argument("--fit-res", type=int, default=128)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--set", dest="extra", action="append", default=[])
+    ap.add_argument("--note", default="", help="a sentence for the results file (how the cached runs were made)")
     args = ap.parse_args()
     threads = 1 if args.jobs > 1 else 0
     datas = {s: scene(s, args.res, args.views) for s in args.scenes}
@@ -104,7 +105,7 @@ def main() -> None:
              f"Machine: {machine()}. Scenes {args.res}x{args.res}, {args.views} training views; `nefii geometry` "
              f"`cpu` preset{' + ' + ' '.join(args.extra) if args.extra else ''}; {args.jobs} at a time "
              f"({threads or 'all'} thread(s) each). This invocation {(time.time() - t0) / 60:.1f} min; "
-             f"code {code_version()}.", "",
+             f"code {code_version()}.", *([args.note] if args.note else []), "",
              "Chamfer: mean of both directed mean nearest-neighbour distances over 100k surface samples each, "
              "relative to the scene mesh's bounding-box diagonal (target <= 1%). Wall time marked * is a "
              "resumed run's last session scaled to all its steps.", "",
