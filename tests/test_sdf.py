@@ -217,7 +217,7 @@ def test_the_normal_prior_measures_curvature_along_the_surface():
         net = SDFNetwork(HashGrid(4, 2, 12, 4, 16), 16, 1, 4, init_radius=r)
         d = torch.randn(4000, 3, generator=gen)
         x = r * d / d.norm(dim=-1, keepdim=True)
-        values[r] = float(normal_variation(net, x, 0.01, gen))
+        values[r] = float(normal_variation(net, x, 0.01, gen).detach())
     assert values[0.25] / values[0.5] == pytest.approx(2.0, rel=0.1)
     # std 0.01 per axis in the 2-d tangent plane: E|t| = 0.01 sqrt(pi / 2); dn = t / r points in a
     # uniformly random direction, whose L1 norm is 3 E|cos| = 1.5 times its length on average
