@@ -52,21 +52,21 @@ class ImageObjective:
 
     def loss(self, model: NeuSModel, step: int, generator: torch.Generator) -> GeometryLoss:
         cfg = self.cfg
-        i, weight = draw_rays(len(self.origins), self.mask, self.foreground, cfg.batch_rays,
-                              cfg.foreground_rays if self.mask is not None else 0.0, generator, self.origins.device)
+        i, weight = draw_rays(len(self.origins), self.mask, self.foreground, cfg.batch_rays, cfg.foreground_rays,
+                              generator, self.origins.device)
         anneal = min(1.0, step / max(cfg.anneal_end * cfg.steps, 1.0))
         out = render_rays(model, self.origins[i], self.directions[i], cfg, generator, train=True, cos_anneal=anneal)
         extra = uniform_in_ball(cfg.batch_rays, generator, self.origins.device)
         _, g_extra, _ = model.sdf.with_gradient(extra, create_graph=True)
         terms = geometry_loss(out, self.rgb[i], None if self.mask is None else self.mask[i], g_extra,
                               cfg.eikonal_weight, cfg.mask_weight, weight)
-        hit = out.opacity.detach() > 0.5
-        surface = (self.origins[i] + out.depth.detach().unsqueeze(-1) * self.directions[i])[hit]
         if cfg.area_weight > 0:
             u = uniform_in_ball(cfg.area_points, generator, self.origins.device)
             area = level_set_area(model.sdf.sdf(u), cfg.area_sharpness)
             terms = dataclasses.replace(terms, total=terms.total + cfg.area_weight * area)
         if cfg.normal_smoothness > 0:
+            hit = out.opacity.detach() > 0.5
+            surface = (self.origins[i] + out.depth.detach().unsqueeze(-1) * self.directions[i])[hit]
             prior = normal_variation(model.sdf, surface, cfg.normal_radius, generator)
             terms = dataclasses.replace(terms, total=terms.total + cfg.normal_smoothness * prior)
         return terms
@@ -75,10 +75,11 @@ class ImageObjective:
 def draw_rays(pixels: int, mask: Bool[Tensor, " P"] | None, foreground: Tensor | None, n: int, fraction: float,
               generator: torch.Generator, device: torch.device) -> tuple[Tensor, Tensor | None]:
     """``n`` pixel indices, ``round(fraction n)`` uniform over ``foreground`` (the indices where
-    ``mask`` is True) and the rest uniform over all ``pixels``, with each one's weight
-    ``(1 / pixels) / q`` under the mixture density ``q`` (so that a weighted mean over the batch
-    estimates the mean over all pixels); weights are None when no ray is drawn from the foreground."""
-    k = round(fraction * n) if mask is not None and foreground is not None and len(foreground) > 0 else 0
+    ``mask`` is True; both None without masks) and the rest uniform over all ``pixels``, with each
+    one's weight ``(1 / pixels) / q`` under the mixture density ``q`` (so that a weighted mean over
+    the batch estimates the mean over all pixels); weights are None when no ray is drawn from the
+    foreground."""
+    k = round(fraction * n) if foreground is not None and len(foreground) > 0 else 0
     if k == 0:
         return torch.randint(pixels, (n,), generator=generator, device=device), None
     fg = foreground[torch.randint(len(foreground), (k,), generator=generator, device=device)]
