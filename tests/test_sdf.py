@@ -39,7 +39,8 @@ def test_geometry_config_round_trips_and_rejects_unknown_fields():
     assert cfg.preset == "paper" and cfg.steps == 7 and cfg.sdf.hidden == 32
     assert geometry_config_from_dict(json.loads(json.dumps(dataclasses.asdict(cfg)))) == cfg
     assert resolve_geometry_config("cpu", []) != cfg
-    for bad, err in (("sdf.nope=1", KeyError), ("sdf=3", KeyError), ("steps", ValueError), ("steps=x", ValueError)):
+    for bad, err in (("sdf.nope=1", KeyError), ("sdf=3", KeyError), ("steps", ValueError), ("steps=x", ValueError),
+                     ("foreground_rays=1.5", ValueError), ("area_weight=-0.1", ValueError)):
         with pytest.raises(err):
             resolve_geometry_config("cpu", [bad])
     with pytest.raises(KeyError):

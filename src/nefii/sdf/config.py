@@ -85,6 +85,13 @@ class GeometryConfig:
     threads: int = 0
     """CPU threads for torch (0: the cores this process may use)"""
 
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.foreground_rays <= 1.0:
+            raise ValueError(f"foreground_rays must lie in [0, 1], got {self.foreground_rays}")
+        for name in ("area_weight", "normal_smoothness"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must not be negative, got {getattr(self, name)}")
+
 
 GEOMETRY_PRESETS: dict[str, dict[str, Any]] = {
     "cpu": {"batch_rays": 256, "samples": 16, "importance": 16, "coarse_to_fine": 0.5,
