@@ -21,6 +21,20 @@ def test_hashgrid_gradient_matches_finite_differences():
     assert torch.autograd.gradcheck(f, (table,))
 
 
+def test_hashgrid_position_gradient_and_double_backward_match_finite_differences():
+    """The SDF stage trains through d encoding / d x (the eikonal loss): first and second derivatives
+    with respect to the points and the table, dense and hashed levels, checked in float64."""
+    torch.manual_seed(2)
+    h = HashGrid(num_levels=3, features_per_level=2, log2_table_size=6, base_resolution=2, max_resolution=9,
+                 init_scale=1.0).double()
+    assert bool(h.dense[0]) and not bool(h.dense[-1])
+    x = (torch.rand(12, 3, dtype=torch.float64) * 0.9 + 0.05).requires_grad_()
+    table = h.table.detach().clone().requires_grad_()
+    f = lambda p, t: functional_call(h, {"table": t}, (p,))
+    assert torch.autograd.gradcheck(f, (x, table))
+    assert torch.autograd.gradgradcheck(f, (x, table))
+
+
 def test_hashgrid_is_continuous_and_exact_on_dense_vertices():
     torch.manual_seed(1)
     h = HashGrid(num_levels=1, features_per_level=2, log2_table_size=12, base_resolution=8, max_resolution=8,

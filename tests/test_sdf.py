@@ -27,7 +27,8 @@ from nefii.sdf.normalization import Normalization, look_at_center, normalization
 from nefii.sdf.outputs import load_sdf
 from nefii.sdf.trace import SDFGeometry
 from nefii.sdf.losses import level_set_area, normal_variation
-from nefii.sdf.train import draw_rays, uniform_in_ball
+from nefii.sdf.model import NeuSModel
+from nefii.sdf.train import ImageObjective, draw_rays, uniform_in_ball
 from nefii.sdf.volume import (composite_weights, neus_alpha, sample_pdf, sphere_bounds, stratified_depths,
                               upsample_depths)
 
@@ -40,7 +41,8 @@ def test_geometry_config_round_trips_and_rejects_unknown_fields():
     assert geometry_config_from_dict(json.loads(json.dumps(dataclasses.asdict(cfg)))) == cfg
     assert resolve_geometry_config("cpu", []) != cfg
     for bad, err in (("sdf.nope=1", KeyError), ("sdf=3", KeyError), ("steps", ValueError), ("steps=x", ValueError),
-                     ("foreground_rays=1.5", ValueError), ("area_weight=-0.1", ValueError)):
+                     ("foreground_rays=1.5", ValueError), ("area_weight=-0.1", ValueError),
+                     ("normal_smoothness_start=2", ValueError)):
         with pytest.raises(err):
             resolve_geometry_config("cpu", [bad])
     with pytest.raises(KeyError):
@@ -435,3 +437,24 @@ def test_geometry_reconstructs_the_bowl(tmp_path, masks):
     assert main(["geometry", str(data), "--out", str(out), "--masks", masks, "--quiet"]) == 0
     d = mesh_distance(trimesh.load(out / "mesh.ply", force="mesh"), trimesh.load(data / "mesh.ply", force="mesh"))
     assert d.chamfer_rel < (0.02 if masks == "on" else 0.05), d
+
+
+def test_normal_prior_waits_for_its_start_step():
+    """Before ``normal_smoothness_start * steps`` the objective is the one without the prior; from
+    then on the prior adds to it."""
+    cfg = resolve_geometry_config("tiny", ["normal_smoothness=10", "normal_smoothness_start=0.5", "area_weight=0"])
+    gen = torch.Generator().manual_seed(0)
+    pixels = 64
+    d = torch.randn(pixels, 3, generator=gen)
+    d = d / d.norm(dim=-1, keepdim=True)
+    objective = ImageObjective(cfg, -2.0 * d, d, torch.rand(pixels, 3, generator=gen), torch.ones(pixels, dtype=torch.bool))
+    plain = ImageObjective(dataclasses.replace(cfg, normal_smoothness=0.0), objective.origins, objective.directions,
+                           objective.rgb, objective.mask)
+    model = NeuSModel(cfg, background=False)
+
+    def total(obj: ImageObjective, step: int) -> float:
+        return float(obj.loss(model, step, torch.Generator().manual_seed(1)).total.detach())
+
+    early, late = cfg.steps // 2 - 1, cfg.steps // 2
+    assert total(objective, early) == total(plain, early)
+    assert total(objective, late) > total(plain, late) + 1e-3

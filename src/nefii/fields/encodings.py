@@ -98,9 +98,13 @@ class HashGrid(nn.Module):
         hashed = ((ix * _PRIMES[0]).view(shape_x) ^ (iy * _PRIMES[1]).view(shape_y)
                   ^ (iz * _PRIMES[2]).view(shape_z)) & (self.table_size - 1)
         idx = torch.where(self.dense.view(1, -1, 1, 1, 1), dense_idx, hashed).flatten(2)
-        idx = idx + self.offset.view(1, -1, 1)                                   # (N, L, 8)
+        idx = idx + self.offset.view(1, -1, 1)                                   # (N, L, 8), corner (z, y, x)
         f = _Gather.apply(self.table, idx)                                       # (N, L, 8, F)
-        wx, wy, wz = (torch.stack([1 - frac[..., a], frac[..., a]], -1) for a in range(3))
-        w = (wx.view(shape_x) * wy.view(shape_y) * wz.view(shape_z)).flatten(2)  # (N, L, 8)
-        out = (f * w.unsqueeze(-1)).sum(2)                                       # (N, L, F)
+        # trilinear weights in the same corner order, as products of same-shape (N, L) tensors: no
+        # broadcasting, so neither backward nor the double backward of the eikonal loss has to reduce
+        # over broadcast dimensions (that made this encoding twice as slow on the CPU)
+        fx, fy, fz = frac.unbind(-1)
+        gx, gy, gz = 1 - fx, 1 - fy, 1 - fz
+        w = torch.stack([zy * xw for zy in (gz * gy, gz * fy, fz * gy, fz * fy) for xw in (gx, fx)], -1)
+        out = torch.stack([(f[..., k] * w).sum(-1) for k in range(self.features_per_level)], -1)   # (N, L, F)
         return out.reshape(*bs, self.out_dim)

@@ -54,6 +54,9 @@ class GeometryConfig:
     ``normal_radius`` (a hash grid's gradient is local to its cells and turns bumpy without it)"""
     normal_radius: float = 0.02
     """std of the tangent step of the normal prior, in normalised units"""
+    normal_smoothness_start: float = 0.0
+    """fraction of the steps before which the normal prior is off: smoothing from the start keeps the
+    surface from bending into hollows (it lids a bowl), so it can wait until the topology is settled"""
     mask_weight: float = 0.1
     """weight of the mask loss, binary cross-entropy of the rendered opacity (NeuS: 0.1)"""
     anneal_end: float = 0.2
@@ -86,8 +89,9 @@ class GeometryConfig:
     """CPU threads for torch (0: the cores this process may use)"""
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.foreground_rays <= 1.0:
-            raise ValueError(f"foreground_rays must lie in [0, 1], got {self.foreground_rays}")
+        for name in ("foreground_rays", "normal_smoothness_start"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         for name in ("area_weight", "normal_smoothness"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must not be negative, got {getattr(self, name)}")

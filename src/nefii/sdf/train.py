@@ -64,7 +64,7 @@ class ImageObjective:
             u = uniform_in_ball(cfg.area_points, generator, self.origins.device)
             area = level_set_area(model.sdf.sdf(u), cfg.area_sharpness)
             terms = dataclasses.replace(terms, total=terms.total + cfg.area_weight * area)
-        if cfg.normal_smoothness > 0:
+        if cfg.normal_smoothness > 0 and step >= cfg.normal_smoothness_start * cfg.steps:
             hit = out.opacity.detach() > 0.5
             surface = (self.origins[i] + out.depth.detach().unsqueeze(-1) * self.directions[i])[hit]
             prior = normal_variation(model.sdf, surface, cfg.normal_radius, generator)
