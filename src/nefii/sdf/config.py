@@ -13,7 +13,7 @@ from ..fit.config import NetworkConfig
 class GeometryConfig:
     preset: str = "cpu"
     """the preset these values started from"""
-    steps: int = 3000
+    steps: int = 6000
     """optimisation steps"""
     batch_rays: int = 512
     """rays per step"""
@@ -99,6 +99,7 @@ class GeometryConfig:
 
 GEOMETRY_PRESETS: dict[str, dict[str, Any]] = {
     "cpu": {"batch_rays": 256, "samples": 16, "importance": 16, "coarse_to_fine": 0.5,
+            "normal_smoothness": 0.05, "normal_smoothness_start": 0.5,
             "sdf": {"encoding": {"levels": 10, "log2_table_size": 16, "max_resolution": 128}, "hidden": 64, "layers": 1},
             "color": {"hidden": 64, "layers": 2}},
     "paper": {
