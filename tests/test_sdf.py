@@ -42,7 +42,7 @@ def test_geometry_config_round_trips_and_rejects_unknown_fields():
     assert resolve_geometry_config("cpu", []) != cfg
     for bad, err in (("sdf.nope=1", KeyError), ("sdf=3", KeyError), ("steps", ValueError), ("steps=x", ValueError),
                      ("foreground_rays=1.5", ValueError), ("area_weight=-0.1", ValueError),
-                     ("normal_smoothness_start=2", ValueError)):
+                     ("normal_smoothness_start=2", ValueError), ("view_freqs=-1", ValueError)):
         with pytest.raises(err):
             resolve_geometry_config("cpu", [bad])
     with pytest.raises(KeyError):
@@ -390,7 +390,10 @@ def test_fit_and_eval_on_a_geometry_folder(tiny_scene, geo_folder, tmp_path, mod
     from nefii.fit.outputs import load_run
     run = tmp_path / "run"
     assert main(["fit", str(tiny_scene), "--out", str(run), "--preset", "tiny", "--quiet", "--geometry",
-                 str(geo_folder), "--set", f"geometry_mode={mode}", "--set", "steps=10", "--set", "threads=1"]) == 0
+                 str(geo_folder), "--set", f"geometry_mode={mode}", "--set", "steps=10", "--set", "threads=1",
+                 "--set", "material_offset_reconstructed=0.01"]) == 0
+    # a reconstruction's material offset is material_offset_reconstructed (tiny's material_offset: 0.04)
+    assert json.loads((run / "config.json").read_text())["material_offset"] == 0.01
     fitted = load_run(run)
     assert fitted.geometry.mode == mode and fitted.mesh == (geo_folder / "mesh.ply").resolve()
     feats = fitted.model.material.features
@@ -458,3 +461,62 @@ def test_normal_prior_waits_for_its_start_step():
     early, late = cfg.steps // 2 - 1, cfg.steps // 2
     assert total(objective, early) == total(plain, early)
     assert total(objective, late) > total(plain, late) + 1e-3
+
+
+def test_an_appearance_encoding_gives_the_colour_a_table_of_its_own():
+    """With ``appearance_encoding`` the colour network reads the point through an encoding that the SDF
+    does not use: changing that table changes the colour and leaves the surface where it was; without
+    it the colour has no encoding. ``view_freqs`` sets the view direction's Fourier features."""
+    plain = NeuSModel(resolve_geometry_config("tiny", []), background=False)
+    assert plain.color.encoding is None
+    cfg = resolve_geometry_config("tiny", ["appearance_encoding=true", "view_freqs=0"])
+    model = NeuSModel(cfg, background=False)
+    assert model.color.dir_enc.out_dim == 3 and isinstance(model.color.encoding, HashGrid)
+    assert model.color.encoding is not model.sdf.encoding
+    u = uniform_in_ball(256, torch.Generator().manual_seed(0), torch.device("cpu"))
+    n = torch.nn.functional.normalize(u, dim=-1)
+    with torch.no_grad():
+        sdf0, feat = model.sdf(u)
+        rgb0 = model.color(u, n, -n, feat)
+        for p in model.color.encoding.parameters():
+            p.add_(torch.randn_like(p))
+        rgb1 = model.color(u, n, -n, model.sdf(u)[1])
+        sdf1 = model.sdf(u)[0]
+    assert torch.equal(sdf0, sdf1)
+    assert float((rgb1 - rgb0).abs().max()) > 1e-3
+
+
+def test_a_reconstruction_takes_its_own_material_offset_and_normal_smoothing(tmp_path):
+    from nefii.fit.config import resolve_config
+    from nefii.fit.geometry_source import GeometrySource, adapt_to_source
+    cfg = resolve_config("cpu", ["material_offset_reconstructed=0.005", "normal_smoothing_reconstructed=0.01"])
+    mesh = GeometrySource("mesh", tmp_path / "mesh.ply")
+    recon = GeometrySource("mesh", tmp_path / "geo" / "mesh.ply", tmp_path / "geo")
+    assert adapt_to_source(cfg, mesh) == (cfg, mesh) and cfg.material_offset == 0.04
+    cfg_r, recon_r = adapt_to_source(cfg, recon)
+    assert cfg_r.material_offset == 0.005 and recon_r.normal_sigma == 0.01
+    assert adapt_to_source(cfg_r, recon_r) == (cfg_r, recon_r)                 # a resumed run: the same
+    assert GeometrySource.from_dict(recon_r.to_dict()) == recon_r
+    sdf_mode = GeometrySource("sdf", tmp_path / "geo" / "mesh.ply", tmp_path / "geo")
+    assert adapt_to_source(cfg, sdf_mode)[1].normal_sigma == 0.0              # the SDF's gradient is its normal
+
+
+def test_smoothed_vertex_normals_lose_noise_and_keep_the_faces_of_a_thin_wall_apart():
+    from nefii.geometry.mesh import smooth_vertex_normals
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    rng = np.random.default_rng(0)
+    noisy = v + 0.15 * rng.normal(size=v.shape)
+    noisy /= np.linalg.norm(noisy, axis=-1, keepdims=True)
+    err = lambda n: np.degrees(np.arccos(np.clip((n * v).sum(-1), -1, 1))).mean()  # noqa: E731
+    smooth = smooth_vertex_normals(v, f, noisy, 0.1)
+    assert err(smooth) < 0.5 * err(noisy)
+    assert np.allclose(np.linalg.norm(smooth, axis=-1), 1.0, atol=1e-6)
+    assert smooth_vertex_normals(v, f, noisy, 0.0) is noisy
+    # a plate 1% thick: its top and bottom meet only along the rim, so the centres keep +z and -z
+    plate = trimesh.creation.box(extents=(2.0, 2.0, 0.02)).subdivide().subdivide().subdivide()
+    pv, pf = np.asarray(plate.vertices), np.asarray(plate.faces)
+    pn = np.asarray(plate.vertex_normals)
+    out = smooth_vertex_normals(pv, pf, pn, 0.05)
+    centre = np.linalg.norm(pv[:, :2], axis=-1) < 0.5
+    assert np.all(out[centre, 2] * np.sign(pv[centre, 2]) > 0.99)

@@ -13,7 +13,7 @@ from ..data import load_scene
 from ..errors import InputError
 from ..fit.build import build_model
 from ..fit.config import PRESETS, FitConfig, resolve_config
-from ..fit.geometry_source import resolve_source
+from ..fit.geometry_source import adapt_to_source, resolve_source
 from ..fit.distributed import DistContext, init_distributed, local_device, parameter_checksums, shutdown
 from ..fit.light_init import estimate_light, set_sg_parameters, sg_from_light
 from ..fit.logging import RunLogger
@@ -74,10 +74,14 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
     say = print if ctx.is_main else (lambda *a, **k: None)
     scene = load_scene(args.data, "train")
     source = resolve_source(args.mesh, args.geometry, scene.mesh_path, cfg.geometry_mode, args.data)
+    cfg, source = adapt_to_source(cfg, source)
     geometry, features = source.open()
     box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
     what = f"mesh {source.mesh} ({len(geometry.faces)} triangles)" if isinstance(geometry, MeshGeometry) else \
         f"SDF of {source.folder}, sphere-traced, feature vector of {features.dim if features else 0}"
+    if source.folder is not None:
+        what += (f" (a reconstruction: material offset {cfg.material_offset:g}, normals smoothed to "
+                 f"{source.normal_sigma:g} of the diagonal)")
     say(f"nefii fit: {len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
         f"{what}; device {device}, {threads} threads"
         + (f", {ctx.world_size} processes" if ctx.active else ""))

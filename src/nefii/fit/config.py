@@ -125,6 +125,14 @@ class FitConfig:
     material_offset: float = 0.0
     """M encodes ``x + offset * n`` (n the shading normal), offset as a fraction of the scene's bounding-box
     diagonal: the faces of a thin wall then do not share the encoding's coarse cells (0: encode x, the paper)"""
+    material_offset_reconstructed: float = 0.0
+    """``material_offset`` used instead when the geometry is a reconstruction (``--geometry GEO``, the output of
+    ``nefii geometry``): its normals are some degrees off and uneven, and the offset turns a normal error e
+    into a lateral error ``offset * sin(e)`` of the material lookup that wanders over the surface (a texel
+    or more at 0.04), which blurs the texture more than the shared cells cost (see docs/design.md)"""
+    normal_smoothing_reconstructed: float = 0.0
+    """with ``--geometry GEO`` in ``mesh`` mode: the mesh's vertex normals are smoothed along its edges to this
+    lateral scale (a fraction of the bounding-box diagonal; 0: none), against the reconstruction's bumps"""
     cache: NetworkConfig = field(default_factory=NetworkConfig)
     """radiance cache L"""
     cache_dir_freqs: int = 4
@@ -140,7 +148,8 @@ class FitConfig:
 
 
 PRESETS: dict[str, dict[str, Any]] = {
-    "cpu": {"material": {"encoding": {"max_resolution": 128}}, "material_offset": 0.04},
+    "cpu": {"material": {"encoding": {"max_resolution": 128}}, "material_offset": 0.04,
+            "material_offset_reconstructed": 0.01},
     "paper": {
         "steps": 60000, "batch_pixels": 2048, "num_samples": 64, "lr": 5e-4, "lr_light": 5e-3,
         "tonemap": "none", "loss": "l1", "smooth_albedo": 0.0, "roughness_warmup": 50 / 120,
@@ -153,12 +162,15 @@ PRESETS: dict[str, dict[str, Any]] = {
         "unobserved_every": 5, "checkpoint_every_s": 60.0, "preview_every": 0, "secondary_buffer": 4096,
         "material": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
         "cache": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
-        "light": {"num_lobes": 16}, "material_offset": 0.04,
+        "light": {"num_lobes": 16}, "material_offset": 0.04, "material_offset_reconstructed": 0.01,
     },
 }
 """``cpu``: designed for 2 CPU cores; ``paper``: the paper's sizes, for a GPU; ``tiny``: tests.
 ``material_offset`` 0.04 in ``cpu``: albedo PSNR bowl 22.7 -> 27.4 dB (a wall 2.6% of the diagonal thick),
-corner +1.8, cup -0.3, leaning -1.3 dB (docs/design.md, fit step 9); ``paper`` keeps the paper's M(x, f)."""
+corner +1.8, cup -0.3, leaning -1.3 dB (docs/design.md, fit step 9); ``paper`` keeps the paper's M(x, f).
+``material_offset_reconstructed`` 0.01 in ``cpu``: on the geometry stage's meshes, offset 0 / 0.01 / 0.04 gave
+albedo PSNR bowl 23.2 / 24.9 / 25.7, leaning 21.9 / 21.6 / 21.1, cup 22.3 / 21.9 / 21.4, corner 22.2 / 22.3 / 21.9
+dB: 0.01 loses least on average (docs/design.md, geometry stage step 7)."""
 
 
 def config_from_dict(values: dict[str, Any]) -> FitConfig:

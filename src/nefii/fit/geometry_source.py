@@ -2,6 +2,7 @@
 (its mesh, or its SDF sphere-traced with the feature vector f). One place for fit, eval and relight."""
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -9,6 +10,7 @@ from ..errors import InputError
 from ..fields.features import FeatureField
 from ..geometry import MeshGeometry
 from ..geometry.base import Geometry
+from .config import FitConfig
 
 MODES = ("mesh", "sdf")
 
@@ -21,13 +23,18 @@ class GeometrySource:
     """the triangle mesh (the one export and view use in either mode)"""
     folder: Path | None = None
     """the ``nefii geometry`` output, if the geometry came from one"""
+    normal_sigma: float = 0.0
+    """``mesh`` mode: the vertex normals are smoothed along the surface to this lateral scale, a fraction of
+    the bounding-box diagonal (0: as computed from the triangles)"""
 
     def to_dict(self) -> dict:
-        return {"mode": self.mode, "mesh": str(self.mesh), "folder": None if self.folder is None else str(self.folder)}
+        return {"mode": self.mode, "mesh": str(self.mesh), "folder": None if self.folder is None else str(self.folder),
+                "normal_sigma": self.normal_sigma}
 
     @staticmethod
     def from_dict(d: dict) -> "GeometrySource":
-        return GeometrySource(d["mode"], Path(d["mesh"]), None if d.get("folder") is None else Path(d["folder"]))
+        return GeometrySource(d["mode"], Path(d["mesh"]), None if d.get("folder") is None else Path(d["folder"]),
+                              float(d.get("normal_sigma", 0.0)))
 
     def open(self) -> tuple[Geometry, FeatureField | None]:
         """The geometry to cast rays against and, in ``sdf`` mode, the feature field for the fields."""
@@ -38,7 +45,7 @@ class GeometrySource:
             loaded = load_sdf(self.folder)
             features = FeatureField(loaded.sdf, loaded.normalization.center, loaded.normalization.radius)
             return SDFGeometry(loaded.sdf, loaded.normalization), features
-        return MeshGeometry.from_file(self.mesh), None
+        return MeshGeometry.from_file(self.mesh).with_smooth_normals(self.normal_sigma), None
 
 
 def resolve_source(mesh: Path | None, geometry: Path | None, scene_mesh: Path | None, mode: str,
@@ -59,3 +66,14 @@ def resolve_source(mesh: Path | None, geometry: Path | None, scene_mesh: Path | 
         raise InputError(data, "no geometry: the dataset has no mesh.ply; pass --mesh PATH or --geometry GEO "
                                "(run nefii geometry first)")
     return GeometrySource("mesh", Path(path).resolve())
+
+
+def adapt_to_source(cfg: FitConfig, source: GeometrySource) -> tuple[FitConfig, GeometrySource]:
+    """``cfg`` and ``source`` as they apply to this geometry: a reconstruction (the folder of ``nefii
+    geometry``) takes ``material_offset_reconstructed`` as its material offset and, in ``mesh`` mode, its
+    vertex normals smoothed by ``normal_smoothing_reconstructed``; a given mesh keeps both as they are."""
+    if source.folder is None:
+        return cfg, source
+    sigma = cfg.normal_smoothing_reconstructed if source.mode == "mesh" else 0.0
+    return (dataclasses.replace(cfg, material_offset=cfg.material_offset_reconstructed),
+            dataclasses.replace(source, normal_sigma=sigma))

@@ -31,6 +31,30 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return vn / np.maximum(np.linalg.norm(vn, axis=-1, keepdims=True), 1e-20)
 
 
+def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, sigma: float) -> np.ndarray:
+    """Unit vertex normals diffused over the mesh's edges to a lateral scale ``sigma`` (same units as the
+    vertices): each round replaces a normal by the mean of itself and its 1-ring, and a random walk of
+    ``k`` steps of mean edge length ``l`` spreads ``l sqrt(k / 2)`` per axis, so ``k = ceil(2 (sigma / l)^2)``.
+    Along edges only: the two faces of a thin wall are not averaged together."""
+    import scipy.sparse as sp
+
+    if sigma <= 0:
+        return normals
+    i = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2], faces[:, 1], faces[:, 2], faces[:, 0]])
+    j = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0], faces[:, 0], faces[:, 1], faces[:, 2]])
+    n_v = len(vertices)
+    adj = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n_v, n_v)).tocsr()
+    adj.data[:] = 1.0                                                  # each neighbour once
+    walk = adj + sp.identity(n_v, format="csr")
+    edge = float(np.linalg.norm(vertices[i] - vertices[j], axis=-1).mean())
+    rounds = int(np.ceil(2.0 * (sigma / max(edge, 1e-12)) ** 2))
+    n = normals.astype(np.float64)
+    for _ in range(rounds):
+        n = walk @ n
+        n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-20)
+    return n.astype(normals.dtype)
+
+
 class MeshGeometry:
     """A frozen triangle mesh: ``intersect`` and ``occluded`` for batches of rays."""
 
@@ -77,6 +101,15 @@ class MeshGeometry:
         if not np.isfinite(mesh.vertices).all():
             raise InputError(path, "mesh has NaN/inf vertex coordinates")
         return MeshGeometry(np.asarray(mesh.vertices), np.asarray(mesh.faces), **kwargs)
+
+    def with_smooth_normals(self, sigma: float) -> "MeshGeometry":
+        """The same triangles with vertex normals smoothed to lateral scale ``sigma`` (a fraction of the
+        bounding-box diagonal; see :func:`smooth_vertex_normals`)."""
+        if sigma <= 0:
+            return self
+        normals = smooth_vertex_normals(self.vertices.astype(np.float64), self.faces,
+                                        self.vertex_normals.astype(np.float64), sigma * self.scale)
+        return MeshGeometry(self.vertices, self.faces, normals, threads=self.threads)
 
     # ---- Embree calls, split over threads
     def _run(self, o: np.ndarray, d: np.ndarray, tmax: np.ndarray | None, query: str):

@@ -74,7 +74,13 @@ class GeometryConfig:
     sdf: NetworkConfig = field(default_factory=NetworkConfig)
     """the SDF network"""
     color: NetworkConfig = field(default_factory=NetworkConfig)
-    """the colour network (its encoding is not used)"""
+    """the colour network (its encoding is used only with ``appearance_encoding``)"""
+    appearance_encoding: bool = False
+    """the colour network encodes the point with ``color.encoding`` of its own, besides the SDF's
+    feature vector: texture then need not live in the SDF's encoding, where it bends the surface"""
+    view_freqs: int = 4
+    """Fourier frequencies of the view direction fed to the colour network (NeuS: 4); fewer leave less
+    room to fake geometry by view-dependent colour"""
     mesh_resolution: int = 256
     """marching-cubes grid resolution over the unit cube"""
     min_component: float = 0.01
@@ -92,7 +98,7 @@ class GeometryConfig:
         for name in ("foreground_rays", "normal_smoothness_start"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
-        for name in ("area_weight", "normal_smoothness"):
+        for name in ("area_weight", "normal_smoothness", "view_freqs"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must not be negative, got {getattr(self, name)}")
 

@@ -66,15 +66,27 @@ class SDFNetwork(nn.Module):
 
 class ColorNetwork(nn.Module):
     """``(u, n, v, feature) -> RGB`` radiance (softplus: linear HDR, never negative): the view-dependent
-    appearance NeuS needs to fit the images; discarded after the geometry stage."""
+    appearance NeuS needs to fit the images; discarded after the geometry stage.
 
-    def __init__(self, feature_dim: int, hidden: int, layers: int, dir_freqs: int = 4) -> None:
+    With ``encoding`` (an appearance encoding of its own), the colour's spatial detail (texture) need
+    not pass through the SDF's feature vector: on a small SDF network a shared encoding lets texture
+    bands bend the surface."""
+
+    def __init__(self, feature_dim: int, hidden: int, layers: int, dir_freqs: int = 4,
+                 encoding: HashGrid | FourierFeatures | None = None) -> None:
         super().__init__()
         self.dir_enc = FourierFeatures(3, dir_freqs)
-        self.net = mlp(3 + 3 + self.dir_enc.out_dim + feature_dim, 3, hidden, layers)
+        self.encoding = encoding
+        self.hashed = isinstance(encoding, HashGrid)
+        extra = 0 if encoding is None else encoding.out_dim
+        self.net = mlp(3 + 3 + self.dir_enc.out_dim + feature_dim + extra, 3, hidden, layers)
 
-    def forward(self, u: Tensor, n: Tensor, v: Tensor, feature: Tensor) -> Float[Tensor, "*bs 3"]:
-        return nn.functional.softplus(self.net(torch.cat([u, n, self.dir_enc(v), feature], -1)))
+    def forward(self, u: Float[Tensor, "*bs 3"], n: Float[Tensor, "*bs 3"], v: Float[Tensor, "*bs 3"],
+                feature: Float[Tensor, "*bs F"]) -> Float[Tensor, "*bs 3"]:
+        parts = [u, n, self.dir_enc(v), feature]
+        if self.encoding is not None:
+            parts.append(self.encoding(0.5 * (u + 1.0) if self.hashed else u))
+        return nn.functional.softplus(self.net(torch.cat(parts, -1)))
 
 
 class Sharpness(nn.Module):
