@@ -149,7 +149,7 @@ class FitConfig:
 
 PRESETS: dict[str, dict[str, Any]] = {
     "cpu": {"material": {"encoding": {"max_resolution": 128}}, "material_offset": 0.04,
-            "material_offset_reconstructed": 0.01},
+            "material_offset_reconstructed": 0.01, "normal_smoothing_reconstructed": 0.005},
     "paper": {
         "steps": 60000, "batch_pixels": 2048, "num_samples": 64, "lr": 5e-4, "lr_light": 5e-3,
         "tonemap": "none", "loss": "l1", "smooth_albedo": 0.0, "roughness_warmup": 50 / 120,
@@ -163,6 +163,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "material": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
         "cache": {"encoding": {"levels": 4, "log2_table_size": 12, "max_resolution": 32}, "hidden": 16},
         "light": {"num_lobes": 16}, "material_offset": 0.04, "material_offset_reconstructed": 0.01,
+        "normal_smoothing_reconstructed": 0.005,
     },
 }
 """``cpu``: designed for 2 CPU cores; ``paper``: the paper's sizes, for a GPU; ``tiny``: tests.
@@ -170,7 +171,8 @@ PRESETS: dict[str, dict[str, Any]] = {
 corner +1.8, cup -0.3, leaning -1.3 dB (docs/design.md, fit step 9); ``paper`` keeps the paper's M(x, f).
 ``material_offset_reconstructed`` 0.01 in ``cpu``: on the geometry stage's meshes, offset 0 / 0.01 / 0.04 gave
 albedo PSNR bowl 23.2 / 24.9 / 25.7, leaning 21.9 / 21.6 / 21.1, cup 22.3 / 21.9 / 21.4, corner 22.2 / 22.3 / 21.9
-dB: 0.01 loses least on average (docs/design.md, geometry stage step 7)."""
+dB; with the normals smoothed to 0.005 of the diagonal (``normal_smoothing_reconstructed``) 0.01 gave 24.8 / 21.8 /
+22.2 / 22.6 dB, the least loss on average (docs/design.md, geometry stage step 7)."""
 
 
 def config_from_dict(values: dict[str, Any]) -> FitConfig:
