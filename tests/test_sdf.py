@@ -387,6 +387,7 @@ def geo_folder(tiny_scene, tmp_path_factory):
 
 @pytest.mark.parametrize("mode", ["mesh", "sdf"])
 def test_fit_and_eval_on_a_geometry_folder(tiny_scene, geo_folder, tmp_path, mode):
+    from nefii.fit.config import resolve_config
     from nefii.fit.outputs import load_run
     run = tmp_path / "run"
     assert main(["fit", str(tiny_scene), "--out", str(run), "--preset", "tiny", "--quiet", "--geometry",
@@ -410,6 +411,10 @@ def test_fit_and_eval_on_a_geometry_folder(tiny_scene, geo_folder, tmp_path, mod
     assert main(["eval", str(run), "--spp", "2", "--quiet"]) == 0
     metrics = json.loads((run / "eval" / "metrics.json").read_text())
     assert isinstance(metrics["masked"]["albedo_psnr"], float)
+    if mode == "mesh":                            # the export bakes with the normals the fit used
+        assert fitted.geometry.normal_sigma == resolve_config("tiny", []).normal_smoothing_reconstructed > 0
+        assert main(["export", str(run), "--out", str(tmp_path / "asset" / "a.glb"), "--texture-size", "64",
+                     "--quiet"]) == 0
 
 
 def test_fit_geometry_input_errors(tiny_scene, geo_folder, tmp_path, capsys):

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     if args.asset is not None:
         glb = args.asset.read_bytes()
     else:
-        mesh = MeshGeometry.from_file(fitted.mesh, threads=1)
+        mesh = MeshGeometry.from_file(fitted.mesh, threads=1).with_smooth_normals(fitted.geometry.normal_sigma)
         glb = glb_bytes(bake_with_progress(fitted.model, mesh, size, args.quiet))
     env = environment_image(fitted.model, VIEW_ENVMAP_SIZE)
     with tempfile.TemporaryDirectory() as tmp:
