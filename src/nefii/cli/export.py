@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     device = pick_device(args.device)
     fitted = load_run(args.run, device)
     set_threads(fitted.config.threads)
-    mesh = MeshGeometry.from_file(fitted.mesh, threads=1).with_smooth_normals(fitted.geometry.normal_sigma)
+    mesh = fitted.geometry.open_mesh(threads=1)
     t0 = time.time()
     asset = bake_with_progress(fitted.model, mesh, size, args.quiet)
     envmap = write_envmap(out.parent / "envmap.exr", fitted.model)

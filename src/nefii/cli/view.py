@@ -14,7 +14,6 @@ from ..export.asset import environment_image, glb_bytes
 from ..export.three import locate_three
 from ..export.viewer import build_page, default_exposure
 from ..fit.outputs import load_run
-from ..geometry import MeshGeometry
 from ..io.atomic import write_text_atomic
 from ..io.exr import write_exr
 from .common import pick_device, set_threads
@@ -54,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     if args.asset is not None:
         glb = args.asset.read_bytes()
     else:
-        mesh = MeshGeometry.from_file(fitted.mesh, threads=1).with_smooth_normals(fitted.geometry.normal_sigma)
+        mesh = fitted.geometry.open_mesh(threads=1)
         glb = glb_bytes(bake_with_progress(fitted.model, mesh, size, args.quiet))
     env = environment_image(fitted.model, VIEW_ENVMAP_SIZE)
     with tempfile.TemporaryDirectory() as tmp:

@@ -45,7 +45,12 @@ class GeometrySource:
             loaded = load_sdf(self.folder)
             features = FeatureField(loaded.sdf, loaded.normalization.center, loaded.normalization.radius)
             return SDFGeometry(loaded.sdf, loaded.normalization), features
-        return MeshGeometry.from_file(self.mesh).with_smooth_normals(self.normal_sigma), None
+        return self.open_mesh(), None
+
+    def open_mesh(self, threads: int | None = None) -> MeshGeometry:
+        """The triangle mesh with the vertex normals the fit used (what ``mesh`` mode casts, and what export
+        and view bake in either mode)."""
+        return MeshGeometry.from_file(self.mesh, normal_sigma=self.normal_sigma, threads=threads)
 
 
 def resolve_source(mesh: Path | None, geometry: Path | None, scene_mesh: Path | None, mode: str,

@@ -85,8 +85,10 @@ class MeshGeometry:
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
 
     @staticmethod
-    def from_file(path: str | Path, **kwargs) -> "MeshGeometry":
-        """Load PLY/OBJ/GLB/... with trimesh; raises InputError naming the file on failure."""
+    def from_file(path: str | Path, normal_sigma: float = 0.0, **kwargs) -> "MeshGeometry":
+        """Load PLY/OBJ/GLB/... with trimesh; raises InputError naming the file on failure. ``normal_sigma`` > 0
+        smooths the vertex normals to that lateral scale, a fraction of the bounding-box diagonal (see
+        :func:`smooth_vertex_normals`)."""
         import trimesh
 
         path = Path(path)
@@ -100,16 +102,12 @@ class MeshGeometry:
             raise InputError(path, "mesh has no triangles")
         if not np.isfinite(mesh.vertices).all():
             raise InputError(path, "mesh has NaN/inf vertex coordinates")
-        return MeshGeometry(np.asarray(mesh.vertices), np.asarray(mesh.faces), **kwargs)
-
-    def with_smooth_normals(self, sigma: float) -> "MeshGeometry":
-        """The same triangles with vertex normals smoothed to lateral scale ``sigma`` (a fraction of the
-        bounding-box diagonal; see :func:`smooth_vertex_normals`)."""
-        if sigma <= 0:
-            return self
-        normals = smooth_vertex_normals(self.vertices.astype(np.float64), self.faces,
-                                        self.vertex_normals.astype(np.float64), sigma * self.scale)
-        return MeshGeometry(self.vertices, self.faces, normals, threads=self.threads)
+        vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+        if normal_sigma > 0:
+            diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+            kwargs["normals"] = smooth_vertex_normals(vertices, faces, vertex_normals(vertices, faces),
+                                                      normal_sigma * diagonal)
+        return MeshGeometry(vertices, faces, **kwargs)
 
     # ---- Embree calls, split over threads
     def _run(self, o: np.ndarray, d: np.ndarray, tmax: np.ndarray | None, query: str):

@@ -13,6 +13,11 @@ from ..fields.encodings import FourierFeatures, HashGrid
 from ..fields.mlp import mlp
 
 
+def encode_point(encoding: HashGrid | FourierFeatures, u: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs E"]:
+    """``encoding`` of a normalised point: a hash grid reads the unit cube ``[0, 1]^3``, Fourier features ``u``."""
+    return encoding(0.5 * (u + 1.0) if isinstance(encoding, HashGrid) else u)
+
+
 class SDFNetwork(nn.Module):
     """``u -> (f(u), feature(u))``: signed distance and the geometric feature vector of the paper.
 
@@ -35,7 +40,7 @@ class SDFNetwork(nn.Module):
             last.bias[0] = 0.0
 
     def forward(self, u: Float[Tensor, "*bs 3"]) -> tuple[Float[Tensor, " *bs"], Float[Tensor, "*bs F"]]:
-        h = self.encoding(0.5 * (u + 1.0) if self.hashed else u)
+        h = encode_point(self.encoding, u)
         if self.hashed:
             h = (h.unflatten(-1, (len(self.level_weights), -1)) * self.level_weights.unsqueeze(-1)).flatten(-2)
         out = self.net(torch.cat([h, u], -1))
@@ -77,7 +82,6 @@ class ColorNetwork(nn.Module):
         super().__init__()
         self.dir_enc = FourierFeatures(3, dir_freqs)
         self.encoding = encoding
-        self.hashed = isinstance(encoding, HashGrid)
         extra = 0 if encoding is None else encoding.out_dim
         self.net = mlp(3 + 3 + self.dir_enc.out_dim + feature_dim + extra, 3, hidden, layers)
 
@@ -85,7 +89,7 @@ class ColorNetwork(nn.Module):
                 feature: Float[Tensor, "*bs F"]) -> Float[Tensor, "*bs 3"]:
         parts = [u, n, self.dir_enc(v), feature]
         if self.encoding is not None:
-            parts.append(self.encoding(0.5 * (u + 1.0) if self.hashed else u))
+            parts.append(encode_point(self.encoding, u))
         return nn.functional.softplus(self.net(torch.cat(parts, -1)))
 
 
