@@ -86,7 +86,7 @@ def albedo_on(run: Path, mesh: Path) -> float:
         hit = geometry.intersect(Rays(o.reshape(-1, 3).float(), d.reshape(-1, 3).float()))
         idx = hit.valid.nonzero().squeeze(-1)
         albedo = torch.zeros(H * W, 3)
-        albedo[idx] = material_at(fitted.model, hit.position[idx], hit.normal[idx]).albedo.cpu()
+        albedo[idx] = material_at(fitted.model, hit.position[idx], hit.lookup_normal[idx]).albedo.cpu()
         image = views.images[v].numpy()
         pred = ViewArrays(image, albedo.reshape(H, W, 3).numpy(), None, None)
         truth = ViewArrays(image, gt.albedo[v].numpy(), None, None)

@@ -180,6 +180,27 @@ def test_glb_material_axes_and_bake_match_the_field(glb, run):
         assert a >= 35 and r >= 35, (name, a, r)
 
 
+def test_the_bake_reads_the_material_along_the_lookup_normals(run):
+    """``bake_asset(..., lookup_normals=L)`` bakes what the field gives along L (the ray caster's
+    ``lookup_normal``) and keeps the asset's own normals; without L it reads along the asset's normals."""
+    from nefii.export.asset import bake_asset
+
+    model = load_run(run).model
+    assert model.material.normal_offset > 0
+    mesh = trimesh.load(load_run(run).mesh, force="mesh", process=False)
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    n = np.asarray(mesh.vertex_normals, np.float32)
+    rng = np.random.default_rng(0)
+    tilted = n + 0.5 * rng.normal(size=n.shape).astype(np.float32)
+    tilted /= np.linalg.norm(tilted, axis=-1, keepdims=True)
+    split = bake_asset(model, v, f, n, 64, lookup_normals=tilted)
+    along = bake_asset(model, v, f, tilted, 64)
+    plain = bake_asset(model, v, f, n, 64)
+    np.testing.assert_allclose(split.normals, plain.normals)
+    np.testing.assert_allclose(split.textures.albedo, along.textures.albedo, atol=1e-6)
+    assert np.abs(split.textures.albedo - plain.textures.albedo).max() > 1e-2
+
+
 def test_envmap_is_the_recovered_light_in_the_design_mapping(glb, run):
     env = read_exr(glb.parent / "envmap.exr")
     assert env.shape == (512, 1024, 3)

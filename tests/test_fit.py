@@ -143,10 +143,42 @@ def test_smoothness_prior_compares_neighbours_in_the_tangent_plane():
     assert smoothness(wall, x, side, wall.material(x, side), prior, None, g).item() > 0.3
 
 
+def test_path_trace_reads_the_material_along_the_lookup_normal():
+    """With a material offset, the material a path sees is ``M(x + d * lookup_normal)``: changing only the
+    lookup normal changes it, changing only the shading normal does not."""
+    import trimesh
+
+    from nefii.fit.build import build_model
+    from nefii.fit.model import path_trace
+    from nefii.geometry import MeshGeometry
+
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    geometry = MeshGeometry(ball.vertices, ball.faces)
+    box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
+    model = build_model(resolve_config("tiny", ["material_offset=0.2"]), box)
+    with torch.no_grad():
+        for p in model.material.parameters():
+            p.copy_(torch.randn(p.shape, generator=torch.Generator().manual_seed(2)))
+    g = torch.Generator().manual_seed(0)
+    n = torch.nn.functional.normalize(torch.randn(256, 3, generator=g), dim=-1)
+    tilt = torch.nn.functional.normalize(n + 0.5 * torch.randn(256, 3, generator=g), dim=-1)
+
+    def albedo(normal, lookup):
+        pts = SurfacePoints(n.clone(), normal, n.clone(), n.clone(), lookup)
+        with torch.no_grad():
+            return path_trace(model, geometry, pts, 2, torch.Generator().manual_seed(1)).material.albedo
+
+    base = albedo(n, n)
+    torch.testing.assert_close(albedo(tilt, n), base)
+    assert (albedo(n, tilt) - base).abs().max() > 1e-2
+    with torch.no_grad():
+        torch.testing.assert_close(albedo(n, tilt), model.material(n, tilt).albedo)
+
+
 def test_secondary_buffer_is_a_ring():
     buf = SecondaryHitBuffer(capacity=5)
     mk = lambda a, b: SurfacePoints(*(torch.arange(a, b, dtype=torch.float32).unsqueeze(-1).repeat(1, 3)
-                                      for _ in range(4)))
+                                      for _ in range(5)))
     buf.add(mk(0, 3))
     assert len(buf) == 3
     buf.add(mk(3, 7))  # 7 points into 5 slots: 0 and 1 are overwritten

@@ -119,3 +119,30 @@ def test_bad_mesh_files_name_the_file(tmp_path):
     with pytest.raises(InputError) as e:
         MeshGeometry.from_file(bad)
     assert str(bad) in str(e.value)
+
+
+def test_lookup_normals_are_interpolated_beside_the_shading_normals(sphere, tmp_path):
+    """A mesh's material-lookup normals are its shading normals unless given; given, a hit carries both,
+    each interpolated from its own vertex array. ``from_file(lookup_sigma=...)`` smooths only the lookup's."""
+    rays = random_rays(4000, torch.Generator().manual_seed(3))
+    hit = sphere.intersect(rays)
+    assert torch.equal(hit.lookup_normal, hit.normal)
+    flipped = MeshGeometry(sphere.vertices, sphere.faces, lookup_normals=-sphere.vertex_normals)
+    other = flipped.intersect(rays)
+    v = other.valid
+    assert v.sum() > 1000
+    torch.testing.assert_close(other.normal[v], hit.normal[v])
+    torch.testing.assert_close(other.lookup_normal[v], -hit.normal[v])
+    with pytest.raises(ValueError, match="one normal per vertex"):
+        MeshGeometry(sphere.vertices, sphere.faces, lookup_normals=sphere.vertex_normals[:-1])
+
+    bumpy = trimesh.creation.icosphere(subdivisions=4)
+    rng = np.random.default_rng(0)
+    bumpy.vertices = bumpy.vertices * (1 + 0.02 * rng.normal(size=(len(bumpy.vertices), 1)))
+    bumpy.export(tmp_path / "bumpy.ply")
+    mesh = MeshGeometry.from_file(tmp_path / "bumpy.ply", lookup_sigma=0.05)
+    radial = bumpy.vertices / np.linalg.norm(bumpy.vertices, axis=-1, keepdims=True)
+    err = lambda n: np.degrees(np.arccos(np.clip((n * radial).sum(-1), -1, 1))).mean()  # noqa: E731
+    plain = MeshGeometry.from_file(tmp_path / "bumpy.ply")
+    assert np.allclose(mesh.vertex_normals, plain.vertex_normals, atol=1e-6)   # shading normals untouched
+    assert err(mesh.lookup_normals) < 0.5 * err(mesh.vertex_normals)

@@ -494,16 +494,18 @@ def test_an_appearance_encoding_gives_the_colour_a_table_of_its_own():
 def test_a_reconstruction_takes_its_own_material_offset_and_normal_smoothing(tmp_path):
     from nefii.fit.config import resolve_config
     from nefii.fit.geometry_source import GeometrySource, adapt_to_source
-    cfg = resolve_config("cpu", ["material_offset_reconstructed=0.005", "normal_smoothing_reconstructed=0.01"])
+    cfg = resolve_config("cpu", ["material_offset_reconstructed=0.005", "normal_smoothing_reconstructed=0.01",
+                                 "lookup_smoothing_reconstructed=0.03"])
     mesh = GeometrySource("mesh", tmp_path / "mesh.ply")
     recon = GeometrySource("mesh", tmp_path / "geo" / "mesh.ply", tmp_path / "geo")
     assert adapt_to_source(cfg, mesh) == (cfg, mesh) and cfg.material_offset == 0.04
     cfg_r, recon_r = adapt_to_source(cfg, recon)
-    assert cfg_r.material_offset == 0.005 and recon_r.normal_sigma == 0.01
+    assert cfg_r.material_offset == 0.005 and recon_r.normal_sigma == 0.01 and recon_r.lookup_sigma == 0.03
     assert adapt_to_source(cfg_r, recon_r) == (cfg_r, recon_r)                 # a resumed run: the same
     assert GeometrySource.from_dict(recon_r.to_dict()) == recon_r
     sdf_mode = GeometrySource("sdf", tmp_path / "geo" / "mesh.ply", tmp_path / "geo")
-    assert adapt_to_source(cfg, sdf_mode)[1].normal_sigma == 0.0              # the SDF's gradient is its normal
+    sdf_r = adapt_to_source(cfg, sdf_mode)[1]
+    assert sdf_r.normal_sigma == sdf_r.lookup_sigma == 0.0                   # the SDF's gradient is its normal
 
 
 def test_smoothed_vertex_normals_lose_noise_and_keep_the_faces_of_a_thin_wall_apart():

@@ -85,7 +85,8 @@ def bake_with_progress(model: NeFIIModel, mesh: MeshGeometry, size: int, quiet: 
         bars[0].update(n)
 
     try:
-        return bake_asset(model, mesh.vertices, mesh.faces, mesh.vertex_normals, size, progress)
+        return bake_asset(model, mesh.vertices, mesh.faces, mesh.vertex_normals, size, progress,
+                          lookup_normals=mesh.lookup_normals)
     finally:
         for bar in bars:
             bar.close()

@@ -47,7 +47,7 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
     out = {k: torch.zeros(n_px, 3, device=device) for k in ("specular", "diffuse", "albedo", "normal", "cache")}
     rough = torch.zeros(n_px, device=device)
     for c in idx.split(chunk):
-        pts = SurfacePoints(hit.position[c], hit.normal[c], hit.geometric_normal[c], -d[c])
+        pts = SurfacePoints.from_hit(hit, c, -d[c])
         traced = path_trace(model, geometry, pts, num_samples, generator, transport, ray_offset=ray_offset)
         rgb[c] = traced.radiance.rgb
         out["specular"][c] = traced.radiance.specular

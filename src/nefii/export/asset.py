@@ -49,12 +49,15 @@ class BakedAsset:
 
 
 def bake_asset(model: NeFIIModel, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, size: int,
-               progress: Callable[[int, int], None] | None = None) -> BakedAsset:
-    """UV-unwrap the mesh into a ``size``-square atlas and bake ``model``'s material over it."""
+               progress: Callable[[int, int], None] | None = None,
+               lookup_normals: np.ndarray | None = None) -> BakedAsset:
+    """UV-unwrap the mesh into a ``size``-square atlas and bake ``model``'s material over it. ``normals`` are
+    the asset's (shading) vertex normals, ``lookup_normals`` the material lookup's (default: ``normals``)."""
     atlas = unwrap(vertices, faces, size)
     positions = np.asarray(vertices, dtype=np.float64)[atlas.source]
     atlas_normals = np.asarray(normals, np.float32)[atlas.source]
-    textures = bake_textures(model, positions, atlas_normals, atlas, progress)
+    lookup = atlas_normals if lookup_normals is None else np.asarray(lookup_normals, np.float32)[atlas.source]
+    textures = bake_textures(model, positions, lookup, atlas, progress)
     return BakedAsset(atlas, positions.astype(np.float32), atlas_normals, textures)
 
 

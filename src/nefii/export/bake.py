@@ -164,7 +164,8 @@ def _upsample2(c: np.ndarray) -> np.ndarray:
 def bake_textures(model: NeFIIModel, vertices: Float[np.ndarray, "V 3"], normals: Float[np.ndarray, "V 3"],
                   atlas: UVAtlas, progress: Callable[[int, int], None] | None = None) -> BakedTextures:
     """Albedo and roughness textures of ``model`` over ``atlas`` (``vertices`` and unit vertex ``normals``
-    are the atlas's, in world space; a texel's normal is interpolated as the ray caster's shading normal).
+    are the atlas's, in world space; ``normals`` are the material lookup's, the ray caster's
+    ``lookup_normal``, and a texel's is interpolated as the ray caster interpolates them).
 
     ``progress(n, total)`` is told after each chunk of ``n`` of the ``total`` texels is decoded.
     """

@@ -133,6 +133,10 @@ class FitConfig:
     normal_smoothing_reconstructed: float = 0.0
     """with ``--geometry GEO`` in ``mesh`` mode: the mesh's vertex normals are smoothed along its edges to this
     lateral scale (a fraction of the bounding-box diagonal; 0: none), against the reconstruction's bumps"""
+    lookup_smoothing_reconstructed: float = 0.0
+    """with ``--geometry GEO`` in ``mesh`` mode: the material lookup ``x + offset * n`` takes n from the mesh's
+    vertex normals smoothed to this lateral scale (a fraction of the diagonal; 0: the shading normals), so the
+    offset only says which side of a wall a point is on and does not carry the reconstruction's normal noise"""
     cache: NetworkConfig = field(default_factory=NetworkConfig)
     """radiance cache L"""
     cache_dir_freqs: int = 4

@@ -26,15 +26,18 @@ class GeometrySource:
     normal_sigma: float = 0.0
     """``mesh`` mode: the vertex normals are smoothed along the surface to this lateral scale, a fraction of
     the bounding-box diagonal (0: as computed from the triangles)"""
+    lookup_sigma: float = 0.0
+    """``mesh`` mode: the material lookup's normals (:attr:`SurfaceHit.lookup_normal`) smoothed to this scale
+    (0: the shading normals)"""
 
     def to_dict(self) -> dict:
         return {"mode": self.mode, "mesh": str(self.mesh), "folder": None if self.folder is None else str(self.folder),
-                "normal_sigma": self.normal_sigma}
+                "normal_sigma": self.normal_sigma, "lookup_sigma": self.lookup_sigma}
 
     @staticmethod
     def from_dict(d: dict) -> "GeometrySource":
         return GeometrySource(d["mode"], Path(d["mesh"]), None if d.get("folder") is None else Path(d["folder"]),
-                              float(d.get("normal_sigma", 0.0)))
+                              float(d.get("normal_sigma", 0.0)), float(d.get("lookup_sigma", 0.0)))
 
     def open(self) -> tuple[Geometry, FeatureField | None]:
         """The geometry to cast rays against and, in ``sdf`` mode, the feature field for the fields."""
@@ -50,7 +53,8 @@ class GeometrySource:
     def open_mesh(self, threads: int | None = None) -> MeshGeometry:
         """The triangle mesh with the vertex normals the fit used (what ``mesh`` mode casts, and what export
         and view bake in either mode)."""
-        return MeshGeometry.from_file(self.mesh, normal_sigma=self.normal_sigma, threads=threads)
+        return MeshGeometry.from_file(self.mesh, normal_sigma=self.normal_sigma, lookup_sigma=self.lookup_sigma,
+                                      threads=threads)
 
 
 def resolve_source(mesh: Path | None, geometry: Path | None, scene_mesh: Path | None, mode: str,
@@ -76,9 +80,11 @@ def resolve_source(mesh: Path | None, geometry: Path | None, scene_mesh: Path | 
 def adapt_to_source(cfg: FitConfig, source: GeometrySource) -> tuple[FitConfig, GeometrySource]:
     """``cfg`` and ``source`` as they apply to this geometry: a reconstruction (the folder of ``nefii
     geometry``) takes ``material_offset_reconstructed`` as its material offset and, in ``mesh`` mode, its
-    vertex normals smoothed by ``normal_smoothing_reconstructed``; a given mesh keeps both as they are."""
+    vertex normals smoothed by ``normal_smoothing_reconstructed`` and the material lookup's by
+    ``lookup_smoothing_reconstructed``; a given mesh keeps all as they are."""
     if source.folder is None:
         return cfg, source
-    sigma = cfg.normal_smoothing_reconstructed if source.mode == "mesh" else 0.0
+    mesh_mode = source.mode == "mesh"
     return (dataclasses.replace(cfg, material_offset=cfg.material_offset_reconstructed),
-            dataclasses.replace(source, normal_sigma=sigma))
+            dataclasses.replace(source, normal_sigma=cfg.normal_smoothing_reconstructed if mesh_mode else 0.0,
+                                lookup_sigma=cfg.lookup_smoothing_reconstructed if mesh_mode else 0.0))

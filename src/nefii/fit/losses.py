@@ -122,7 +122,7 @@ def observed_loss(model: NeFIIModel, geometry: Geometry, batch: Pixels, num_samp
     total = l_render + beta1 * l_cache + beta2 * l_bg
     l_smooth = None
     if prior.active:
-        l_smooth = smoothness(model, pts.position, pts.normal, traced.material, prior, roughness_override,
+        l_smooth = smoothness(model, pts.position, pts.lookup_normal, traced.material, prior, roughness_override,
                               generator)
         total = total + l_smooth
     return LossTerms(total, l_render, l_cache, l_bg, l_smooth), traced
@@ -182,5 +182,7 @@ class SecondaryHitBuffer:
         if state is None:
             self._items, self._next, self._size = None, 0, 0
             return
-        self._items = SurfacePoints(**{k: v.to(device) for k, v in state["items"].items()})
+        items = {k: v.to(device) for k, v in state["items"].items()}
+        items.setdefault("lookup_normal", items["normal"])       # checkpoints from before lookup normals
+        self._items = SurfacePoints(**items)
         self._next, self._size = int(state["next"]), int(state["size"])

@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from ..fields.cache import RadianceCache
 from ..fields.environment import EnvmapEnvironment, SGEnvironment
 from ..fields.material import MaterialField
-from ..geometry.base import Geometry, Rays, spawn_rays
+from ..geometry.base import Geometry, Rays, SurfaceHit, spawn_rays
 from ..render.brdf import Material
 from ..render.estimator import (DirectionSamples, RadianceEstimate, combine, combine_pair, mean_of_pair,
                                 sample_mis_directions)
@@ -41,10 +41,18 @@ class SurfacePoints:
     geometric_normal: Float[Tensor, "B 3"]
     wo: Float[Tensor, "B 3"]
     """unit direction towards the viewer"""
+    lookup_normal: Float[Tensor, "B 3"]
+    """unit normal along which the material lookup is offset (:attr:`SurfaceHit.lookup_normal`)"""
+
+    @staticmethod
+    def from_hit(hit: SurfaceHit, select: Tensor, wo: Float[Tensor, "B 3"]) -> "SurfacePoints":
+        """The hits ``hit[select]`` (an index or mask over the rays) seen along ``wo`` (one per selected hit)."""
+        return SurfacePoints(hit.position[select], hit.normal[select], hit.geometric_normal[select], wo,
+                             hit.lookup_normal[select])
 
     def map(self, fn: Callable[[Tensor], Tensor]) -> "SurfacePoints":
         """``fn`` applied to every field (indexing, detaching, moving, ...)."""
-        return SurfacePoints(fn(self.position), fn(self.normal), fn(self.geometric_normal), fn(self.wo))
+        return SurfacePoints(*(fn(getattr(self, f.name)) for f in fields(SurfacePoints)))
 
     def __getitem__(self, idx: Tensor | slice) -> "SurfacePoints":
         return self.map(lambda t: t[idx])
@@ -91,7 +99,7 @@ def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_sa
                generator: torch.Generator | None, transport: Transport = Transport(),
                roughness_override: float | None = None, ray_offset: float = 1e-4) -> PathTraced:
     """Eq. 2-4 at ``pts``: the path-traced colour, the material there, and the secondary hits."""
-    material = model.material(pts.position, pts.normal, roughness_override=roughness_override)
+    material = model.material(pts.position, pts.lookup_normal, roughness_override=roughness_override)
     samples = sample_mis_directions(pts.normal, pts.wo, material.roughness.detach(), model.env.light_sampler(),
                                     num_samples, generator)
     wi = samples.wi                                                            # (B, S, 3)
@@ -100,14 +108,13 @@ def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_sa
     w_live = wi[b_idx, s_idx]
     if not transport.visibility:
         L_i = wi.new_zeros(wi.shape).index_put((b_idx, s_idx), model.env.radiance(w_live))
-        no_hits = SurfacePoints(*(wi.new_zeros(0, 3) for _ in range(4)))
+        no_hits = SurfacePoints(*(wi.new_zeros(0, 3) for _ in fields(SurfacePoints)))
         return PathTraced(*_estimate(samples, material, pts.normal, L_i), material, no_hits)
 
     # ---- secondary rays
     rays = spawn_rays(pts.position[b_idx], pts.geometric_normal[b_idx], w_live, ray_offset * geometry.scale)
     hit = geometry.intersect(Rays(rays.origins, rays.directions))
-    secondary = SurfacePoints(hit.position[hit.valid], hit.normal[hit.valid],
-                              hit.geometric_normal[hit.valid], -w_live[hit.valid])
+    secondary = SurfacePoints.from_hit(hit, hit.valid, -w_live[hit.valid])
     # ---- incoming light: V E(w) + (1 - V) L(x', n', -w)
     miss = ~hit.valid
     L_i = wi.new_zeros(wi.shape).index_put((b_idx[miss], s_idx[miss]), model.env.radiance(w_live[miss]))

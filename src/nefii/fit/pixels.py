@@ -56,7 +56,7 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
             m = scene.masks[v].reshape(-1)
             obj, bg = obj & m, bg & ~m
         dirs = d.reshape(-1, 3)
-        pts.append(SurfacePoints(hit.position[obj], hit.normal[obj], hit.geometric_normal[obj], -dirs[obj]))
+        pts.append(SurfacePoints.from_hit(hit, obj, -dirs[obj]))
         rgb.append(colour[obj])
         bg_d.append(dirs[bg])
         bg_c.append(colour[bg])

@@ -39,6 +39,9 @@ class SurfaceHit:
     """unit shading normal (interpolated vertex normals for meshes), facing outwards"""
     geometric_normal: Float[Tensor, "*bs 3"]
     """unit face normal, facing outwards (winding order)"""
+    lookup_normal: Float[Tensor, "*bs 3"]
+    """unit normal along which the material field's lookup is offset (``MaterialField``'s ``normal_offset``):
+    the shading normal, or a mesh's own, smoother, lookup normals"""
     triangle_id: Int[Tensor, " *bs"]
     """-1 where nothing is hit (and for backends without triangles)"""
     features: Float[Tensor, "*bs F"] | None = None

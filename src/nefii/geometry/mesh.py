@@ -59,7 +59,10 @@ class MeshGeometry:
     """A frozen triangle mesh: ``intersect`` and ``occluded`` for batches of rays."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None,
-                 threads: int | None = None) -> None:
+                 threads: int | None = None, lookup_normals: np.ndarray | None = None) -> None:
+        """``normals``: unit vertex (shading) normals, default area-weighted; ``lookup_normals``: unit vertex
+        normals along which the material field's lookup is offset (:attr:`SurfaceHit.lookup_normal`), default
+        the shading normals."""
         from embreex import rtcore_scene as rtcs
         from embreex.mesh_construction import TriangleMesh
 
@@ -69,6 +72,11 @@ class MeshGeometry:
             raise ValueError(f"MeshGeometry wants vertices (V,3) and faces (F,3); got {vertices.shape}, {faces.shape}")
         vn = vertex_normals(self.vertices.astype(np.float64), self.faces) if normals is None else normals
         self.vertex_normals = np.ascontiguousarray(vn, dtype=np.float32)
+        self.lookup_normals = (self.vertex_normals if lookup_normals is None
+                               else np.ascontiguousarray(lookup_normals, dtype=np.float32))
+        if self.vertex_normals.shape != self.vertices.shape or self.lookup_normals.shape != self.vertices.shape:
+            raise ValueError(f"MeshGeometry wants one normal per vertex, (V,3) = {self.vertices.shape}; got "
+                             f"{self.vertex_normals.shape} and {self.lookup_normals.shape}")
         fn = np.cross(self.vertices[self.faces[:, 1]] - self.vertices[self.faces[:, 0]],
                       self.vertices[self.faces[:, 2]] - self.vertices[self.faces[:, 0]])
         self.face_normals = (fn / np.maximum(np.linalg.norm(fn, axis=-1, keepdims=True), 1e-30)).astype(np.float32)
@@ -81,14 +89,17 @@ class MeshGeometry:
         self._vertices_t = torch.from_numpy(self.vertices)
         self._faces_t = torch.from_numpy(self.faces.astype(np.int64))
         self._normals_t = torch.from_numpy(self.vertex_normals)
+        self._lookup_t = (self._normals_t if self.lookup_normals is self.vertex_normals
+                          else torch.from_numpy(self.lookup_normals))
         self._face_normals_t = torch.from_numpy(self.face_normals)
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
 
     @staticmethod
-    def from_file(path: str | Path, normal_sigma: float = 0.0, **kwargs) -> "MeshGeometry":
+    def from_file(path: str | Path, normal_sigma: float = 0.0, lookup_sigma: float = 0.0, **kwargs) -> "MeshGeometry":
         """Load PLY/OBJ/GLB/... with trimesh; raises InputError naming the file on failure. ``normal_sigma`` > 0
         smooths the vertex normals to that lateral scale, a fraction of the bounding-box diagonal (see
-        :func:`smooth_vertex_normals`)."""
+        :func:`smooth_vertex_normals`); ``lookup_sigma`` > 0 gives the material lookup its own normals, the
+        area-weighted ones smoothed to that scale (0: the shading normals)."""
         import trimesh
 
         path = Path(path)
@@ -103,10 +114,12 @@ class MeshGeometry:
         if not np.isfinite(mesh.vertices).all():
             raise InputError(path, "mesh has NaN/inf vertex coordinates")
         vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
-        if normal_sigma > 0:
+        if normal_sigma > 0 or lookup_sigma > 0:
             diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0)))
-            kwargs["normals"] = smooth_vertex_normals(vertices, faces, vertex_normals(vertices, faces),
-                                                      normal_sigma * diagonal)
+            raw = vertex_normals(vertices, faces)
+            kwargs["normals"] = smooth_vertex_normals(vertices, faces, raw, normal_sigma * diagonal)
+            if lookup_sigma > 0:
+                kwargs["lookup_normals"] = smooth_vertex_normals(vertices, faces, raw, lookup_sigma * diagonal)
         return MeshGeometry(vertices, faces, **kwargs)
 
     # ---- Embree calls, split over threads
@@ -160,9 +173,12 @@ class MeshGeometry:
         n = len(prim)
         position = torch.zeros(n, 3)
         normal = torch.zeros(n, 3)
+        lookup = normal if self._lookup_t is self._normals_t else torch.zeros(n, 3)
         geo = torch.zeros(n, 3)
         position[idx] = (self._vertices_t[f] * w).sum(1)   # on the triangle: what ray offsets rely on
         normal[idx] = normalize((self._normals_t[f] * w).sum(1))
+        if lookup is not normal:
+            lookup[idx] = normalize((self._lookup_t[f] * w).sum(1))
         geo[idx] = self._face_normals_t[tri]
         t_all = torch.where(valid, torch.from_numpy(tfar), torch.tensor(float("inf")))
 
@@ -170,4 +186,5 @@ class MeshGeometry:
             return a.to(device=dev, dtype=dtype if a.is_floating_point() else a.dtype).reshape(*bs, *tail)
 
         return SurfaceHit(valid=out(valid), t=out(t_all), position=out(position, 3), normal=out(normal, 3),
-                          geometric_normal=out(geo, 3), triangle_id=out(torch.where(valid, prim_t, -1)))
+                          geometric_normal=out(geo, 3), lookup_normal=out(lookup, 3),
+                          triangle_id=out(torch.where(valid, prim_t, -1)))

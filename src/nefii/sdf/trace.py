@@ -87,6 +87,7 @@ class SDFGeometry:
         return SurfaceHit(valid=valid.to(dev).reshape(shape), t=t_world.to(dev, dtype).reshape(shape),
                           position=pos.to(dev, dtype).reshape(*shape, 3), normal=n.to(dev, dtype).reshape(*shape, 3),
                           geometric_normal=n.to(dev, dtype).reshape(*shape, 3),
+                          lookup_normal=n.to(dev, dtype).reshape(*shape, 3),
                           triangle_id=torch.full(shape, -1, dtype=torch.long, device=dev),
                           features=feat.to(dev, dtype).reshape(*shape, -1))
 
