@@ -172,13 +172,16 @@ class MeshGeometry:
         w = torch.stack([1.0 - uu - vv, uu, vv], -1).unsqueeze(-1)             # barycentrics (M, 3, 1)
         n = len(prim)
         position = torch.zeros(n, 3)
-        normal = torch.zeros(n, 3)
-        lookup = normal if self._lookup_t is self._normals_t else torch.zeros(n, 3)
         geo = torch.zeros(n, 3)
         position[idx] = (self._vertices_t[f] * w).sum(1)   # on the triangle: what ray offsets rely on
-        normal[idx] = normalize((self._normals_t[f] * w).sum(1))
-        if lookup is not normal:
-            lookup[idx] = normalize((self._lookup_t[f] * w).sum(1))
+
+        def unit_normals(per_vertex: Tensor) -> Tensor:
+            out = torch.zeros(n, 3)
+            out[idx] = normalize((per_vertex[f] * w).sum(1))
+            return out
+
+        normal = unit_normals(self._normals_t)
+        lookup = normal if self._lookup_t is self._normals_t else unit_normals(self._lookup_t)
         geo[idx] = self._face_normals_t[tri]
         t_all = torch.where(valid, torch.from_numpy(tfar), torch.tensor(float("inf")))
 

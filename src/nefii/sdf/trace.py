@@ -84,10 +84,10 @@ class SDFGeometry:
         t_world = torch.where(valid, t * self.norm.radius, torch.full_like(t, float("inf")))
         pos = self.norm.to_world(x)
         shape = rays.origins.shape[:-1]
+        n = n.to(dev, dtype).reshape(*shape, 3)                   # the SDF's gradient: every normal a hit has
         return SurfaceHit(valid=valid.to(dev).reshape(shape), t=t_world.to(dev, dtype).reshape(shape),
-                          position=pos.to(dev, dtype).reshape(*shape, 3), normal=n.to(dev, dtype).reshape(*shape, 3),
-                          geometric_normal=n.to(dev, dtype).reshape(*shape, 3),
-                          lookup_normal=n.to(dev, dtype).reshape(*shape, 3),
+                          position=pos.to(dev, dtype).reshape(*shape, 3), normal=n, geometric_normal=n,
+                          lookup_normal=n,
                           triangle_id=torch.full(shape, -1, dtype=torch.long, device=dev),
                           features=feat.to(dev, dtype).reshape(*shape, -1))
 
