@@ -58,14 +58,15 @@ def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[st
             "folder": out, "code": code_version()}
 
 
-def fit_on(data: Path, geo: Path, threads: int) -> dict:
-    """``nefii fit --geometry geo`` (mesh mode) on ``data``, evaluated; the masked metrics."""
-    run = geo / f"fit_{data.name}"
+def fit_on(data: Path, geo: Path, threads: int, sets: list[str], tag: str) -> dict:
+    """``nefii fit --geometry geo`` (mesh mode, the ``cpu`` preset + ``sets``) on ``data``, evaluated; the
+    masked metrics. The run is ``geo/fit_<data>`` (``_<tag>`` appended when given)."""
+    run = geo / (f"fit_{data.name}" + (f"_{tag}" if tag else ""))
     if not (run / "eval" / "metrics.json").exists():
         if not (run / "model.pt").exists():
             resume = ["--resume"] if (run / "checkpoints").exists() else []
-            nefii("fit", str(data), "--out", str(run), "--geometry", str(geo), "--quiet", *resume,
-                  "--set", f"threads={threads}")
+            extra = [x for kv in [*sets, f"threads={threads}"] for x in ("--set", kv)]
+            nefii("fit", str(data), "--out", str(run), "--geometry", str(geo), "--quiet", *resume, *extra)
         nefii("eval", str(run), "--quiet", "--spp", "64")
     return json.loads((run / "eval" / "metrics.json").read_text())["masked"]
 
@@ -119,9 +120,14 @@ def main() -> None:
                          "--fit-res, beside quality.py's fit on the ground-truth mesh")
     ap.add_argument("--fit-res", type=int, default=128)
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--set", dest="extra", action="append", default=[])
+    ap.add_argument("--set", dest="extra", action="append", default=[], help="geometry-stage config override")
+    ap.add_argument("--fit-set", dest="fit_sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="fit config override for the fits on the reconstructions (give --fit-tag with it)")
+    ap.add_argument("--fit-tag", default="", help="name of these fits' variant: runs fit_<scene>_<tag>")
     ap.add_argument("--note", default="", help="a sentence for the results file (how the cached runs were made)")
     args = ap.parse_args()
+    if args.fit_sets and not args.fit_tag:
+        ap.error("--fit-set needs --fit-tag (the variant's runs must not reuse the preset's)")
     threads = 1 if args.jobs > 1 else 0
     datas = {s: scene(s, args.res, args.views) for s in args.scenes}
     t0 = time.time()
@@ -130,8 +136,8 @@ def main() -> None:
         rows = list(pool.map(lambda j: geometry_run(*j, threads, args.extra), jobs))
     fitted = [r for r in rows if args.fits is not None and (not args.fits or r["scene"] in args.fits)]
     with ThreadPoolExecutor(args.jobs) as pool:
-        fits = list(pool.map(lambda r: fit_on(scene(r["scene"], args.fit_res, args.views), r["folder"], threads),
-                             fitted))
+        fits = list(pool.map(lambda r: fit_on(scene(r["scene"], args.fit_res, args.views), r["folder"], threads,
+                                              args.fit_sets, args.fit_tag), fitted))
         gts = list(pool.map(lambda r: ground_truth_fit(r["scene"], scene(r["scene"], args.fit_res, args.views),
                                                        threads), fitted))
     for r, f, g in zip(fitted, fits, gts):
@@ -146,7 +152,8 @@ def main() -> None:
              "Chamfer: mean of both directed mean nearest-neighbour distances over 100k surface samples each, "
              "relative to the scene mesh's bounding-box diagonal (target <= 1%). Wall time marked * is a "
              "resumed run's last session scaled to all its steps.", "",
-             *([f"Fits: `nefii fit --geometry` (mesh mode, `cpu` preset) on the {args.fit_res}x{args.fit_res} "
+             *([f"Fits: `nefii fit --geometry` (mesh mode, `cpu` preset"
+                f"{' + ' + ' '.join(args.fit_sets) if args.fit_sets else ''}) on the {args.fit_res}x{args.fit_res} "
                 f"scene with the mesh reconstructed above, beside the same fit on the scene's own mesh "
                 f"(quality.py's `full` run); masked albedo PSNR (target: within 1.5 dB) and roughness MSE. "
                 f"'GT material on recon' is the ground-truth-geometry fit's material read at the reconstructed "

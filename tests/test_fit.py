@@ -132,15 +132,22 @@ def test_policies():
 
 def test_smoothness_prior_compares_neighbours_in_the_tangent_plane():
     """Albedo that changes only across a wall (along z): a prior along the surface z = 0 sees no change,
-    and the same prior at points whose normal lies in the plane does."""
+    and the same prior at points whose normal lies in the plane does. The tangent plane is the shading
+    normal's: a lookup normal scaled to zero (no offset there) or tilted does not change it."""
     wall = SimpleNamespace(material=lambda x, n, roughness_override=None: Material(
         torch.sigmoid(200.0 * x[..., 2:3]).expand(*x.shape[:-1], 3), torch.full(x.shape[:-1], 0.5)))
     x = torch.rand(4096, 3) * torch.tensor([1.0, 1.0, 0.0])
     prior = SmoothnessPrior(albedo=1.0, radius=0.05)
     up, side = torch.tensor([0.0, 0.0, 1.0]).expand(4096, 3), torch.tensor([1.0, 0.0, 0.0]).expand(4096, 3)
-    g = torch.Generator().manual_seed(0)
-    assert smoothness(wall, x, up, wall.material(x, up), prior, None, g).item() == 0.0
-    assert smoothness(wall, x, side, wall.material(x, side), prior, None, g).item() > 0.3
+
+    def prior_at(shading, lookup):
+        pts = SurfacePoints(x, shading, shading, shading, lookup)
+        return smoothness(wall, pts, wall.material(x, lookup), prior, None, torch.Generator().manual_seed(0)).item()
+
+    assert prior_at(up, up) == 0.0
+    assert prior_at(side, side) > 0.3
+    assert prior_at(up, torch.zeros_like(up)) == prior_at(up, side) == 0.0
+    assert prior_at(side, torch.zeros_like(up)) > 0.3
 
 
 def test_path_trace_reads_the_material_along_the_lookup_normal():

@@ -81,7 +81,9 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
         f"SDF of {source.folder}, sphere-traced, feature vector of {features.dim if features else 0}"
     if source.folder is not None:
         what += (f" (a reconstruction: material offset {cfg.material_offset:g}, normals smoothed to "
-                 f"{source.normal_sigma:g} of the diagonal, the lookup's to {source.lookup_sigma:g})")
+                 f"{source.normal_sigma:g} of the diagonal, the lookup's to {source.lookup_sigma:g}"
+                 + (f", offset scaled to walls thinner than {source.lookup_separation:g}" if source.lookup_separation
+                    else "") + ")")
     say(f"nefii fit: {len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
         f"{what}; device {device}, {threads} threads"
         + (f", {ctx.world_size} processes" if ctx.active else ""))

@@ -21,6 +21,7 @@ from jaxtyping import Bool, Float, Int
 
 from ..fit.model import NeFIIModel
 from ..fit.outputs import material_at
+from ..geometry.mesh import interpolate_offsets
 from .unwrap import UVAtlas
 
 _CANDIDATES_PER_CHUNK = 1 << 21
@@ -165,7 +166,8 @@ def bake_textures(model: NeFIIModel, vertices: Float[np.ndarray, "V 3"], normals
                   atlas: UVAtlas, progress: Callable[[int, int], None] | None = None) -> BakedTextures:
     """Albedo and roughness textures of ``model`` over ``atlas`` (``vertices`` and unit vertex ``normals``
     are the atlas's, in world space; ``normals`` are the material lookup's, the ray caster's
-    ``lookup_normal``, and a texel's is interpolated as the ray caster interpolates them).
+    ``lookup_normal`` (unit, or scaled per vertex), and a texel's is interpolated as the ray caster
+    interpolates them, by :func:`interpolate_offsets`).
 
     ``progress(n, total)`` is told after each chunk of ``n`` of the ``total`` texels is decoded.
     """
@@ -174,10 +176,10 @@ def bake_textures(model: NeFIIModel, vertices: Float[np.ndarray, "V 3"], normals
     tri = atlas.faces[texels.triangle]                                                 # (N, 3)
     corners = np.asarray(vertices, dtype=np.float64)[tri]                              # (N, 3, 3)
     points = torch.from_numpy((texels.bary[..., None] * corners).sum(1)).float()
-    nrm = (texels.bary[..., None] * np.asarray(normals, dtype=np.float64)[tri]).sum(1)
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-30)
+    nrm = interpolate_offsets(torch.from_numpy(np.asarray(normals, dtype=np.float64)[tri]),
+                              torch.from_numpy(np.asarray(texels.bary, dtype=np.float64)))
     total = len(points)
-    mat = material_at(model, points, torch.from_numpy(nrm).float(),
+    mat = material_at(model, points, nrm.float(),
                       progress=None if progress is None else (lambda n: progress(n, total)))
     values = torch.cat([mat.albedo, mat.roughness.unsqueeze(-1)], -1).cpu().double().numpy()
     image = np.zeros((S, S, 4))

@@ -137,6 +137,11 @@ class FitConfig:
     """with ``--geometry GEO`` in ``mesh`` mode: the material lookup ``x + offset * n`` takes n from the mesh's
     vertex normals smoothed to this lateral scale (a fraction of the diagonal; 0: the shading normals), so the
     offset only says which side of a wall a point is on and does not carry the reconstruction's normal noise"""
+    offset_by_thickness_reconstructed: bool = False
+    """with ``--geometry GEO`` in ``mesh`` mode: the offset at each vertex is scaled to the wall it lies on (its
+    thickness t along the lookup normal, ray-cast inwards), ``offset * clip(1 - t / (2 offset), 0, 1)``, so the
+    two faces of a thin wall are encoded ``max(t, 2 offset)`` apart and parts thicker than twice the offset
+    keep the exact lookup (no folding, no wandering where nothing needs separating)"""
     cache: NetworkConfig = field(default_factory=NetworkConfig)
     """radiance cache L"""
     cache_dir_freqs: int = 4

@@ -94,11 +94,14 @@ class SmoothnessPrior:
         return self.albedo > 0 or self.roughness > 0
 
 
-def smoothness(model: NeFIIModel, x: Tensor, n: Tensor, material, prior: SmoothnessPrior,
+def smoothness(model: NeFIIModel, pts: SurfacePoints, material, prior: SmoothnessPrior,
                roughness_override: float | None, generator: torch.Generator | None) -> Tensor:
+    """L1 between the material at ``pts`` and at a neighbour a random step along the tangent plane (of the
+    unit shading normal), read along the same lookup normal."""
+    x, n = pts.position, pts.normal
     d = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype) * prior.radius
     d = d - (d * n).sum(-1, keepdim=True) * n                                 # in the tangent plane
-    other = model.material(x + d, n, roughness_override=roughness_override)
+    other = model.material(x + d, pts.lookup_normal, roughness_override=roughness_override)
     loss = prior.albedo * (material.albedo - other.albedo).abs().mean()
     if roughness_override is None:
         loss = loss + prior.roughness * (material.roughness - other.roughness).abs().mean()
@@ -122,8 +125,7 @@ def observed_loss(model: NeFIIModel, geometry: Geometry, batch: Pixels, num_samp
     total = l_render + beta1 * l_cache + beta2 * l_bg
     l_smooth = None
     if prior.active:
-        l_smooth = smoothness(model, pts.position, pts.lookup_normal, traced.material, prior, roughness_override,
-                              generator)
+        l_smooth = smoothness(model, pts, traced.material, prior, roughness_override, generator)
         total = total + l_smooth
     return LossTerms(total, l_render, l_cache, l_bg, l_smooth), traced
 

@@ -42,7 +42,8 @@ class SurfacePoints:
     wo: Float[Tensor, "B 3"]
     """unit direction towards the viewer"""
     lookup_normal: Float[Tensor, "B 3"]
-    """unit normal along which the material lookup is offset (:attr:`SurfaceHit.lookup_normal`)"""
+    """normal along which the material lookup is offset (:attr:`SurfaceHit.lookup_normal`): unit, or scaled to
+    the share of the offset the point takes"""
 
     @staticmethod
     def from_hit(hit: SurfaceHit, select: Tensor, wo: Float[Tensor, "B 3"]) -> "SurfacePoints":
