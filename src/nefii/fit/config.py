@@ -141,7 +141,8 @@ class FitConfig:
     """with ``--geometry GEO`` in ``mesh`` mode: the offset at each vertex is scaled to the wall it lies on (its
     thickness t along the lookup normal, ray-cast inwards), ``offset * clip(1 - t / (2 offset), 0, 1)``, so the
     two faces of a thin wall are encoded ``max(t, 2 offset)`` apart and parts thicker than twice the offset
-    keep the exact lookup (no folding, no wandering where nothing needs separating)"""
+    keep the exact lookup (no folding, no wandering where nothing needs separating). Off in every preset: at 0.04
+    it did no better than the ``cpu`` preset on the built-in reconstructions (docs/design.md, geometry step 7)"""
     cache: NetworkConfig = field(default_factory=NetworkConfig)
     """radiance cache L"""
     cache_dir_freqs: int = 4
