@@ -39,6 +39,11 @@ def scene(name: str, res: int = 128, views: int = 64, test_views: int = 8, spp: 
     return out
 
 
+def set_flags(overrides: list[str], threads: int) -> list[str]:
+    """``--set KEY=VALUE`` arguments of a nefii command for ``overrides`` and the thread count."""
+    return [x for kv in [*overrides, f"threads={threads}"] for x in ("--set", kv)]
+
+
 def stamp() -> str:
     return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
 

@@ -25,7 +25,7 @@ import torch
 import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CACHE, RESULTS, code_version, machine, scene, stamp  # noqa: E402
+from common import CACHE, RESULTS, code_version, machine, scene, set_flags, stamp  # noqa: E402
 
 from nefii.camera import pixel_rays  # noqa: E402
 from nefii.data import load_scene  # noqa: E402
@@ -45,7 +45,7 @@ def nefii(*args: str) -> None:
 def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[str]) -> dict:
     out = CACHE / "geometry" / f"{data.name}_masks_{masks}"
     if not (out / "geometry_stats.json").exists():
-        sets = [x for kv in [*extra, f"threads={threads}"] for x in ("--set", kv)]
+        sets = set_flags(extra, threads)
         resume = ["--resume"] if (out / "checkpoints").exists() else []
         nefii("geometry", str(data), "--out", str(out), "--masks", masks, "--quiet", *resume, *sets)
     stats = json.loads((out / "geometry_stats.json").read_text())
@@ -65,7 +65,7 @@ def fit_on(data: Path, geo: Path, threads: int, sets: list[str], tag: str) -> di
     if not (run / "eval" / "metrics.json").exists():
         if not (run / "model.pt").exists():
             resume = ["--resume"] if (run / "checkpoints").exists() else []
-            extra = [x for kv in [*sets, f"threads={threads}"] for x in ("--set", kv)]
+            extra = set_flags(sets, threads)
             nefii("fit", str(data), "--out", str(run), "--geometry", str(geo), "--quiet", *resume, *extra)
         nefii("eval", str(run), "--quiet", "--spp", "64")
     return json.loads((run / "eval" / "metrics.json").read_text())["masked"]

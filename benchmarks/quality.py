@@ -21,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CACHE, RESULTS, code_version, machine, scene, stamp  # noqa: E402
+from common import CACHE, RESULTS, code_version, machine, scene, set_flags, stamp  # noqa: E402
 
 CONFIGS = {
     "full": [],
@@ -51,7 +51,7 @@ def run_one(data: Path, name: str, config: str, extra: list[str], threads: int, 
         if not (run / "model.pt").exists():
             (run / "benchmark.json").unlink(missing_ok=True)
             switches = {**CONFIGS, **BASELINES}[config]
-            sets = [x for kv in [*switches, *extra, f"threads={threads}"] for x in ("--set", kv)]
+            sets = set_flags([*switches, *extra], threads)
             resume = ["--resume"] if (run / "checkpoints").exists() else []
             cmd = [sys.executable, "-m", "nefii.cli.main", "fit", str(data), "--out", str(run), "--quiet", *resume, *sets]
             proc = subprocess.run(cmd, capture_output=True, text=True)
