@@ -53,7 +53,7 @@ def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[st
     # a resumed run's wall time covers only its last session: scaled to all steps, and marked
     done = stats.get("steps_this_session", stats["steps"])
     wall = stats.get("wall_s_this_session", stats.get("wall_s")) * stats["steps"] / max(done, 1)
-    return {"scene": name, "masks": masks, "chamfer_rel": d.chamfer_rel, "normal_deg": d.normal_deg,
+    return {"scene": name, "masks": masks, "chamfer_rel": d.chamfer_rel, "normal_deg": d.normal_deg, "missed": d.missed,
             "wall_min": wall / 60, "resumed": done < stats["steps"], "peak_gib": stats["peak_rss_gib"],
             "folder": out, "code": code_version()}
 
@@ -151,7 +151,8 @@ def main() -> None:
              f"code {code_version()}.", *([args.note] if args.note else []), "",
              "Chamfer: mean of both directed mean nearest-neighbour distances over 100k surface samples each, "
              "relative to the scene mesh's bounding-box diagonal (target <= 1%). Wall time marked * is a "
-             "resumed run's last session scaled to all its steps.", "",
+             "resumed run's last session scaled to all its steps. Missed: share of the scene mesh's surface farther "
+             "than 2% of the diagonal from the reconstruction (a lidded hollow's inside, say).", "",
              *([f"Fits: `nefii fit --geometry` (mesh mode, `cpu` preset"
                 f"{' + ' + ' '.join(args.fit_sets) if args.fit_sets else ''}) on the {args.fit_res}x{args.fit_res} "
                 f"scene with the mesh reconstructed above, beside the same fit on the scene's own mesh "
@@ -160,12 +161,13 @@ def main() -> None:
                 f"mesh's first hits and scored the same way: what the geometry alone costs (a fit on the "
                 f"reconstructed mesh that reaches it loses nothing beyond the geometry).", ""]
                if any_fit else []),
-             "| scene | masks | chamfer (% diag) | normal error (deg) | wall min | peak GiB |"
+             "| scene | masks | chamfer (% diag) | missed | normal error (deg) | wall min | peak GiB |"
              + (" albedo PSNR recon / GT geometry | GT material on recon | roughness MSE recon / GT geometry |"
                 if any_fit else ""),
-             "|---|---|---|---|---|---|" + ("---|---|---|" if any_fit else "")]
+             "|---|---|---|---|---|---|---|" + ("---|---|---|" if any_fit else "")]
     for r in rows:
-        line = (f"| {r['scene']} | {r['masks']} | {100 * r['chamfer_rel']:.2f} | {r['normal_deg']:.1f} | "
+        line = (f"| {r['scene']} | {r['masks']} | {100 * r['chamfer_rel']:.2f} | {100 * r['missed']:.1f}% | "
+                f"{r['normal_deg']:.1f} | "
                 f"{r['wall_min']:.1f}{'*' if r['resumed'] else ''} | {r['peak_gib']:.2f} |")
         if "fit" in r:
             line += (f" {r['fit']['albedo_psnr']:.2f} / {r['gt_fit']['albedo_psnr']:.2f} | {r['transplant']:.2f} | "

@@ -254,7 +254,24 @@ def test_marching_cubes_of_the_initial_sphere_is_that_sphere_wound_outwards():
     ref = trimesh.creation.icosphere(subdivisions=5, radius=1.0).apply_translation((1.0, -2.0, 0.5))
     dist = mesh_distance(mesh, ref, samples=20000)
     assert dist.chamfer_rel < 0.005, dist                       # the 20k-sample floor is ~0.0035
+    assert dist.missed == 0.0
     assert mesh.volume > 0 and mesh.volume == pytest.approx(4 / 3 * math.pi, rel=0.02)
+
+
+def test_missed_is_the_share_of_the_reference_the_prediction_lacks():
+    """A reference of two equal spheres far apart against a prediction of one of them: half of the
+    reference's surface is missed, none of it when the prediction has both; a prediction displaced by
+    less than the threshold misses nothing, one displaced by more misses everything."""
+    a = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    b = a.copy().apply_translation((5.0, 0.0, 0.0))
+    both = trimesh.util.concatenate([a, b])
+    assert mesh_distance(a, both, samples=20000).missed == pytest.approx(0.5, abs=0.02)
+    assert mesh_distance(both, both, samples=20000).missed == 0.0
+    diag = float(np.linalg.norm(a.bounds[1] - a.bounds[0]))
+    near = a.copy().apply_translation((0.01 * diag, 0.0, 0.0))
+    assert mesh_distance(near, a, samples=20000).missed < 0.01
+    shrunk = a.copy().apply_scale(1.0 - 0.05 * diag)
+    assert mesh_distance(shrunk, a, samples=20000).missed > 0.99
 
 
 def test_sphere_tracing_agrees_with_embree_on_the_extracted_mesh():
