@@ -28,7 +28,6 @@ import trimesh
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import CACHE, RESULTS, code_version, machine, scene, stamp  # noqa: E402
 
-from nefii.camera import pixel_rays  # noqa: E402
 from nefii.data import load_scene  # noqa: E402
 from nefii.sdf.config import resolve_geometry_config  # noqa: E402
 from nefii.sdf.extract import extract_mesh  # noqa: E402
@@ -66,13 +65,7 @@ def one_scene(data: Path, mesh_steps: int, image_steps: int, sets: list[str], sh
     s0 = float(model.sharpness().detach())
     # no cosine annealing: the SDF is already a surface, back faces have nothing to contribute
     image_cfg = dataclasses.replace(cfg, steps=image_steps, anneal_end=0.0)
-    o, d, rgb = [], [], []
-    for v in range(len(views)):
-        ov, dv = pixel_rays(views.cameras.c2w[v], views.cameras.K[v], views.height, views.width)
-        o.append(norm.to_unit(ov.reshape(-1, 3)).float())
-        d.append(dv.reshape(-1, 3).float())
-        rgb.append(views.images[v].reshape(-1, 3))
-    objective = ImageObjective(image_cfg, torch.cat(o), torch.cat(d), torch.cat(rgb), views.masks.reshape(-1))
+    objective = ImageObjective.from_views(image_cfg, views, norm, views.masks, device)
     GeometryTrainer(image_cfg, model, objective, device).fit(out / "image_phase", progress=False)
     after = extract_mesh(model.sdf, norm, cfg.mesh_resolution, cfg.min_component)
     after.export(out / "mesh_after_images.ply")

@@ -9,10 +9,8 @@ import resource
 import time
 from pathlib import Path
 
-import torch
 import trimesh
 
-from ..camera import pixel_rays
 from ..data import load_scene
 from ..errors import InputError
 from ..io.atomic import atomic_path, write_text_atomic
@@ -88,14 +86,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(args.data, "--masks on, but the dataset has no masks (no mask files, no alpha)")
         masks = None if args.masks == "off" else scene.masks
         norm = normalization_from_cameras(scene.cameras, masks, root=args.data)
-        o, d, rgb = [], [], []
-        for v in range(len(scene)):
-            ov, dv = pixel_rays(scene.cameras.c2w[v], scene.cameras.K[v], scene.height, scene.width)
-            o.append(norm.to_unit(ov.reshape(-1, 3)).float())
-            d.append(dv.reshape(-1, 3).float())
-            rgb.append(scene.images[v].reshape(-1, 3))
-        m = None if masks is None else masks.reshape(-1).to(device)
-        objective = ImageObjective(cfg, torch.cat(o).to(device), torch.cat(d).to(device), torch.cat(rgb).to(device), m)
+        objective = ImageObjective.from_views(cfg, scene, norm, masks, device)
         model = NeuSModel(cfg, background=masks is None)
         source = f"images ({'with' if masks is not None else 'without'} masks)"
         print(f"nefii geometry: NeuS on {len(scene)} views {scene.width}x{scene.height} from {scene.root}, "

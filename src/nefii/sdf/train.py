@@ -17,10 +17,13 @@ from jaxtyping import Bool, Float
 from torch import Tensor
 from tqdm import tqdm
 
+from ..camera import pixel_rays
+from ..data.scene import SceneData
 from ..io.checkpoints import latest_checkpoint, save_checkpoint
 from .config import GeometryConfig
 from .losses import GeometryLoss, geometry_loss, level_set_area, normal_variation
 from .model import NeuSModel, render_rays
+from .normalization import Normalization
 
 
 class Objective(Protocol):
@@ -49,6 +52,19 @@ class ImageObjective:
 
     def __post_init__(self) -> None:
         self.foreground = None if self.mask is None else self.mask.nonzero().squeeze(-1)
+
+    @classmethod
+    def from_views(cls, cfg: GeometryConfig, views: SceneData, norm: Normalization, masks: Tensor | None,
+                   device: torch.device) -> ImageObjective:
+        """Every pixel of ``views`` as a ray in ``norm``'s coordinates; ``masks`` (V, H, W) bool or None."""
+        o, d, rgb = [], [], []
+        for v in range(len(views)):
+            ov, dv = pixel_rays(views.cameras.c2w[v], views.cameras.K[v], views.height, views.width)
+            o.append(norm.to_unit(ov.reshape(-1, 3)).float())
+            d.append(dv.reshape(-1, 3).float())
+            rgb.append(views.images[v].reshape(-1, 3))
+        mask = None if masks is None else masks.reshape(-1).to(device)
+        return cls(cfg, torch.cat(o).to(device), torch.cat(d).to(device), torch.cat(rgb).to(device), mask)
 
     def loss(self, model: NeuSModel, step: int, generator: torch.Generator) -> GeometryLoss:
         cfg = self.cfg
