@@ -44,6 +44,16 @@ def set_flags(overrides: list[str], threads: int) -> list[str]:
     return [x for kv in [*overrides, f"threads={threads}"] for x in ("--set", kv)]
 
 
+def write_results(name: str, lines: list[str]) -> None:
+    """Print a results table and write it to ``results/<name>`` (atomically)."""
+    from nefii.io.atomic import write_text_atomic  # noqa: PLC0415
+
+    text = "\n".join(lines) + "\n"
+    print(text)
+    RESULTS.mkdir(exist_ok=True)
+    write_text_atomic(RESULTS / name, text)
+
+
 def stamp() -> str:
     return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
 

@@ -25,7 +25,7 @@ import torch
 import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CACHE, RESULTS, code_version, machine, scene, set_flags, stamp  # noqa: E402
+from common import CACHE, code_version, machine, scene, set_flags, stamp, write_results  # noqa: E402
 
 from nefii.camera import pixel_rays  # noqa: E402
 from nefii.data import load_scene  # noqa: E402
@@ -175,10 +175,7 @@ def main() -> None:
         elif any_fit:
             line += " | | |"
         lines.append(line)
-    text = "\n".join(lines) + "\n"
-    print(text)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "geometry.md").write_text(text)
+    write_results("geometry.md", lines)
 
 
 if __name__ == "__main__":

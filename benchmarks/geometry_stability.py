@@ -26,7 +26,7 @@ import torch
 import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CACHE, RESULTS, code_version, machine, scene, stamp  # noqa: E402
+from common import CACHE, code_version, machine, scene, stamp, write_results  # noqa: E402
 
 from nefii.data import load_scene  # noqa: E402
 from nefii.sdf.config import resolve_geometry_config  # noqa: E402
@@ -104,10 +104,7 @@ def main() -> None:
         lines.append(f"| {name} | {s0:.0f} | {100 * before.chamfer_rel:.2f} / {100 * after.chamfer_rel:.2f} | "
                      f"{before.normal_deg:.1f} / {after.normal_deg:.1f} | {100 * before.missed:.1f}% / "
                      f"{100 * after.missed:.1f}% |")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "geometry_stability.md").write_text(text)
+    write_results("geometry_stability.md", lines)
 
 
 if __name__ == "__main__":

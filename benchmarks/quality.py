@@ -21,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CACHE, RESULTS, code_version, machine, scene, set_flags, stamp  # noqa: E402
+from common import CACHE, code_version, machine, scene, set_flags, stamp, write_results  # noqa: E402
 
 CONFIGS = {
     "full": [],
@@ -139,10 +139,7 @@ def main() -> None:
     lines += ["", *target_lines(rows)]
     if missing:
         lines += ["", "Not run yet: " + ", ".join(missing) + "."]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "quality.md").write_text(text)
+    write_results("quality.md", lines)
 
 
 if __name__ == "__main__":
