@@ -1,8 +1,9 @@
 """Speed and memory of the ``cpu`` preset's training step, beside the raw Embree ray-cast rate.
 
-    python benchmarks/fit_speed.py [--data DIR] [--steps 200] [--preset cpu]
+    python benchmarks/fit_speed.py [--data DIR] [--steps 200] [--preset cpu] [--device auto|cpu|cuda]
 
-Prints the figures and writes ``benchmarks/results/fit_speed.md``. Without ``--data`` it uses
+Prints the figures and writes ``benchmarks/results/fit_speed.md`` (``fit_speed_cuda.md`` when the
+step runs on a GPU; Embree's ray casts stay on the CPU either way). Without ``--data`` it uses
 the smallest built-in scene at 128x128 with 64 training views (synthesised once, cached).
 """
 from __future__ import annotations
@@ -16,9 +17,9 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, machine, scene, stamp  # noqa: E402
+from common import machine, scene, stamp, write_results  # noqa: E402
 
-from nefii.cli.common import set_threads  # noqa: E402
+from nefii.cli.common import pick_device, set_threads  # noqa: E402
 from nefii.data import load_scene  # noqa: E402
 from nefii.fit.build import build_model  # noqa: E402
 from nefii.fit.config import resolve_config  # noqa: E402
@@ -53,24 +54,31 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=None)
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--preset", default="cpu")
+    ap.add_argument("--device", default="cpu", help="cpu | cuda | auto")
     args = ap.parse_args()
+    device = pick_device(args.device)
     data = args.data or scene(smallest_scene())
     cfg = resolve_config(args.preset, [])
     threads = set_threads(cfg.threads)
     sc = load_scene(data, "train")
     geometry = MeshGeometry.from_file(sc.mesh_path)
     t0 = time.perf_counter()
-    pixels = first_hits(sc, geometry)
+    pixels = first_hits(sc, geometry).to(device)
     t_first = time.perf_counter() - t0
     box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
-    trainer = Trainer(cfg, build_model(cfg, box), geometry, pixels, torch.device("cpu"))
+    trainer = Trainer(cfg, build_model(cfg, box), geometry, pixels, device)
     for _ in range(10):  # warm up (allocator, first unobserved step)
         trainer.train_step()
     rays = 0
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    sync()
     t0 = time.perf_counter()
     for _ in range(args.steps):
         rec = trainer.train_step()
         rays += 3 * cfg.num_samples * (cfg.batch_pixels if rec.kind == "observed" else cfg.unobserved_points)
+    sync()
     dt = time.perf_counter() - t0
     peak_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     closest, anyhit = embree_rate(geometry)
@@ -80,7 +88,8 @@ def main() -> None:
         ("scene", f"{data.name}: {len(sc)} views {sc.width}x{sc.height}, {len(pixels.points)} object pixels, "
                   f"{len(geometry.faces)} triangles"),
         ("preset", f"{args.preset}: {cfg.batch_pixels} px/step, N={cfg.num_samples} (x3 directions)"),
-        ("threads", str(threads)),
+        ("device of the training step", str(device)),
+        ("CPU threads (Embree, and the step on the CPU)", str(threads)),
         ("first hits of all training pixels", f"{t_first:.2f} s"),
         ("steps/s", f"{steps_s:.2f}"),
         ("time per step", f"{1000 / steps_s:.1f} ms"),
@@ -91,13 +100,11 @@ def main() -> None:
         ("steps in 15 min at this rate", f"{steps_s * 900:.0f} (preset runs {cfg.steps})"),
         ("peak resident memory", f"{peak_gib:.2f} GiB"),
     ]
-    for k, v in rows:
-        print(f"{k:55s} {v}")
-    RESULTS.mkdir(exist_ok=True)
+    if device.type == "cuda":
+        rows.append(("peak GPU memory allocated", f"{torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB"))
     md = [f"# fit_speed ({stamp()})", "", f"Machine: {machine()}", "", "| figure | value |", "|---|---|"]
     md += [f"| {k} | {v} |" for k, v in rows]
-    (RESULTS / "fit_speed.md").write_text("\n".join(md) + "\n")
-    print(f"wrote {RESULTS / 'fit_speed.md'}")
+    write_results("fit_speed_cuda.md" if device.type == "cuda" else "fit_speed.md", md)
 
 
 if __name__ == "__main__":

@@ -216,7 +216,7 @@ def test_envmap_is_the_recovered_light_in_the_design_mapping(glb, run):
     assert env.shape == (512, 1024, 3)
     with torch.no_grad():
         ref = load_run(run).model.env.to_equirect(512, 1024).numpy()
-    assert np.allclose(env, ref)
+    np.testing.assert_allclose(env, ref, rtol=1e-4, atol=1e-6)  # float32 sums of lobes; export may run on a GPU
 
 
 # ---------------------------------------------------------------- OBJ

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
+from ..errors import InputError
+
 
 @dataclass(frozen=True)
 class DistContext:
@@ -40,9 +42,13 @@ def init_distributed(device: torch.device) -> DistContext:
 
 
 def local_device(device: torch.device, ctx: DistContext) -> torch.device:
-    """On CUDA each process takes the GPU of its local rank."""
+    """On CUDA each process takes the GPU of its local rank; NCCL refuses two processes on one GPU."""
     if device.type == "cuda" and ctx.active:
-        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", ctx.rank)) % torch.cuda.device_count())
+        per_node, gpus = int(os.environ.get("LOCAL_WORLD_SIZE", ctx.world_size)), torch.cuda.device_count()
+        if per_node > gpus:
+            raise InputError(None, f"{per_node} processes per node but {gpus} CUDA device(s): start at most one "
+                                   "process per GPU, or use --device cpu")
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", ctx.rank)))
     return device
 
 

@@ -114,7 +114,7 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         if self.dist.rank == 0:
-            self.generator.set_state(state["generator"])
+            self.generator.set_state(state["generator"].cpu())  # a ByteTensor even for a CUDA generator
         else:  # other ranks' streams are not saved: restart them deterministically from the step
             self.generator.manual_seed(self.cfg.seed + 1000 * self.dist.rank + 7919 * self.step)
         self.buffer.load_state_dict(state["buffer"], self.device)

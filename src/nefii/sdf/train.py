@@ -153,7 +153,7 @@ class GeometryTrainer:
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
-        self.generator.set_state(state["generator"])
+        self.generator.set_state(state["generator"].cpu())  # a ByteTensor even for a CUDA generator
 
     def resume(self, folder: Path) -> bool:
         last = latest_checkpoint(folder)
