@@ -16,7 +16,9 @@ import torch
 from fit_fixtures import write_rendered_scene
 from nefii.cli.main import main
 from nefii.evaluate.table1 import METRIC_KEYS
+from nefii.errors import InputError
 from nefii.fit.config import FitConfig, config_from_dict, config_to_dict, resolve_config
+from nefii.fit.distributed import DistContext, local_device
 from nefii.fit.losses import SecondaryHitBuffer, SmoothnessPrior, smoothness
 from nefii.fit.model import SurfacePoints
 from nefii.fit.policies import Alternation, RoughnessWarmup
@@ -232,3 +234,15 @@ def test_a_non_finite_loss_is_reported_and_never_saved(tiny_scene, tmp_path, mon
     # the checkpoints are those of the good steps before it
     steps = sorted(int(p.stem.split("_")[1]) for p in (run / "checkpoints").glob("step_*.pt"))
     assert steps and max(steps) <= 4
+
+
+def test_more_processes_than_gpus_is_an_input_error(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "2")
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    with pytest.raises(InputError, match="2 processes per node but 1 CUDA"):
+        local_device(torch.device("cuda"), DistContext(rank=1, world_size=2))
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "1")  # two nodes of one GPU each
+    monkeypatch.setenv("LOCAL_RANK", "0")
+    assert local_device(torch.device("cuda"), DistContext(rank=1, world_size=2)) == torch.device("cuda", 0)
+    assert local_device(torch.device("cpu"), DistContext(rank=1, world_size=2)) == torch.device("cpu")
