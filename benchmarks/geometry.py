@@ -43,7 +43,8 @@ def nefii(*args: str) -> None:
 
 
 def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[str]) -> dict:
-    out = CACHE / "geometry" / f"{data.name}_masks_{masks}"
+    # a variant (--set) has a folder of its own: the preset's cached run must not stand in for it
+    out = CACHE / "geometry" / "_".join([f"{data.name}_masks_{masks}", *(kv.replace("/", "-") for kv in extra)])
     if not (out / "geometry_stats.json").exists():
         sets = set_flags(extra, threads)
         resume = ["--resume"] if (out / "checkpoints").exists() else []
