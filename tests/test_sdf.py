@@ -508,35 +508,6 @@ def test_an_appearance_encoding_gives_the_colour_a_table_of_its_own():
     assert float((rgb1 - rgb0).abs().max()) > 1e-3
 
 
-def test_reflection_feeds_the_colour_the_view_direction_mirrored_about_the_normal():
-    """``reflection``: the direction the colour network encodes is ``v - 2 (v.n) n`` (tangential part
-    kept, normal part flipped: a ray coming down onto an upward normal leaves upwards), with ``v.n``
-    beside it; a head-on view is sent straight back. Without it the network encodes ``v`` itself."""
-    seen = []
-    for flag in ("false", "true"):
-        model = NeuSModel(resolve_geometry_config("tiny", [f"reflection={flag}", "view_freqs=0"]), background=False)
-        assert model.color.reflect == (flag == "true")
-        model.color.dir_enc.register_forward_hook(lambda m, inp, out: seen.append(inp[0].clone()))
-        g = torch.Generator().manual_seed(1)
-        u = uniform_in_ball(64, g, torch.device("cpu"))
-        n = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1)
-        v = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1)
-        v = torch.where(((v * n).sum(-1, keepdim=True) > 0), -v, v)   # views that face the surface
-        with torch.no_grad():
-            rgb = model.color(u, n, v, model.sdf(u)[1])
-        assert rgb.shape == (64, 3) and bool(torch.isfinite(rgb).all())
-    plain, mirrored = seen
-    assert torch.equal(plain, v)
-    assert torch.allclose(mirrored.norm(dim=-1), torch.ones(64), atol=1e-5)
-    assert torch.allclose((mirrored * n).sum(-1), -(v * n).sum(-1), atol=1e-5)
-    tangential = lambda x: x - (x * n).sum(-1, keepdim=True) * n  # noqa: E731
-    assert torch.allclose(tangential(mirrored), tangential(v), atol=1e-5)
-    seen.clear()
-    with torch.no_grad():  # the last model built reflects
-        model.color(u[:1], n[:1], -n[:1], model.sdf(u[:1])[1])
-    assert torch.allclose(seen[0], n[:1], atol=1e-6)
-
-
 def test_a_reconstruction_takes_its_own_material_offset_and_normal_smoothing(tmp_path):
     from nefii.fit.config import resolve_config
     from nefii.fit.geometry_source import GeometrySource, adapt_to_source

@@ -78,9 +78,6 @@ class GeometryConfig:
     appearance_encoding: bool = False
     """the colour network encodes the point with ``color.encoding`` of its own, besides the SDF's
     feature vector: texture then need not live in the SDF's encoding, where it bends the surface"""
-    reflection: bool = False
-    """the colour network sees the view direction mirrored about the normal (Ref-NeRF), not the view
-    direction itself: a glossy surface's reflections then need no bumps or lids to be explained"""
     view_freqs: int = 4
     """Fourier frequencies of the view direction fed to the colour network (NeuS: 4); fewer leave less
     room to fake geometry by view-dependent colour"""

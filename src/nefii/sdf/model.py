@@ -20,8 +20,7 @@ class NeuSModel(nn.Module):
         self.sdf = SDFNetwork(make_encoding(cfg.sdf.encoding), cfg.sdf.hidden, cfg.sdf.layers, cfg.feature_dim,
                               cfg.init_radius)
         self.color = ColorNetwork(cfg.feature_dim, cfg.color.hidden, cfg.color.layers, cfg.view_freqs,
-                                  make_encoding(cfg.color.encoding) if cfg.appearance_encoding else None,
-                                  reflect=cfg.reflection)
+                                  make_encoding(cfg.color.encoding) if cfg.appearance_encoding else None)
         self.sharpness = Sharpness()
         self.background = Background() if background else None
 

@@ -75,29 +75,19 @@ class ColorNetwork(nn.Module):
 
     With ``encoding`` (an appearance encoding of its own), the colour's spatial detail (texture) need
     not pass through the SDF's feature vector: on a small SDF network a shared encoding lets texture
-    bands bend the surface.
-
-    With ``reflect``, the direction fed to the network is the view direction mirrored about the normal,
-    ``r = v - 2 (v.n) n``, beside ``v.n`` (Ref-NeRF's parameterisation): a glossy reflection is then a
-    smooth function of ``r``, where in ``v`` it changes with every bend of the surface, and the surface
-    need not bend to fake it."""
+    bands bend the surface."""
 
     def __init__(self, feature_dim: int, hidden: int, layers: int, dir_freqs: int = 4,
-                 encoding: HashGrid | FourierFeatures | None = None, reflect: bool = False) -> None:
+                 encoding: HashGrid | FourierFeatures | None = None) -> None:
         super().__init__()
         self.dir_enc = FourierFeatures(3, dir_freqs)
         self.encoding = encoding
-        self.reflect = reflect
-        extra = (0 if encoding is None else encoding.out_dim) + int(reflect)
+        extra = 0 if encoding is None else encoding.out_dim
         self.net = mlp(3 + 3 + self.dir_enc.out_dim + feature_dim + extra, 3, hidden, layers)
 
     def forward(self, u: Float[Tensor, "*bs 3"], n: Float[Tensor, "*bs 3"], v: Float[Tensor, "*bs 3"],
                 feature: Float[Tensor, "*bs F"]) -> Float[Tensor, "*bs 3"]:
-        if self.reflect:
-            cos = (v * n).sum(-1, keepdim=True)
-            parts = [u, n, self.dir_enc(v - 2.0 * cos * n), feature, cos]
-        else:
-            parts = [u, n, self.dir_enc(v), feature]
+        parts = [u, n, self.dir_enc(v), feature]
         if self.encoding is not None:
             parts.append(encode_point(self.encoding, u))
         return nn.functional.softplus(self.net(torch.cat(parts, -1)))
