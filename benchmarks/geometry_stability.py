@@ -1,11 +1,13 @@
 """Does the geometry stage's image objective keep the true surface? A diagnostic of `nefii geometry`.
 
     python benchmarks/geometry_stability.py [--scenes cup bowl] [--mesh-steps 1500] [--image-steps 1000]
-                                            [--jobs 2] [--set key=value ...] [--sharpness S]
+                                            [--jobs 2] [--set key=value ...] [--sharpness S] [--colour-steps K]
 
 For each scene: the `cpu` preset's SDF network is fitted to the scene's own mesh.ply (the from-mesh
 objective, in the normalisation the image objective uses), then trained on the images (NeuS, with
-masks) for ``--image-steps`` more, starting from that SDF. The reconstruction measures (chamfer,
+masks) for ``--image-steps`` more, starting from that SDF (after ``--colour-steps`` that train the
+colour network alone, the SDF and ``s`` frozen, so that the joint steps do not start from an
+untrained colour). The reconstruction measures (chamfer,
 normal error, share of the true surface missed by more than 2% of the diagonal) are printed for the
 SDF before and after. If the images' objective moves a surface it starts on, no schedule or
 initialisation of the geometry stage can be expected to find that surface from a sphere: what is
@@ -38,12 +40,13 @@ from nefii.sdf.normalization import normalization_from_cameras  # noqa: E402
 from nefii.sdf.train import GeometryTrainer, ImageObjective  # noqa: E402
 
 
-def one_scene(data: Path, mesh_steps: int, image_steps: int, sets: list[str], sharpness: float | None
-              ) -> tuple[MeshDistance, MeshDistance, float]:
+def one_scene(data: Path, mesh_steps: int, image_steps: int, sets: list[str], sharpness: float | None,
+              colour_steps: int = 0) -> tuple[MeshDistance, MeshDistance, float]:
     """Distances of the mesh-fitted SDF and of the same SDF after the image steps to the scene's mesh, and
     the sharpness ``s`` the image steps started from."""
     torch.set_num_threads(1)
-    tags = [*sets, *([f"s{sharpness:g}"] if sharpness is not None else [])]
+    tags = [*sets, *([f"s{sharpness:g}"] if sharpness is not None else []),
+            *([f"colour{colour_steps}"] if colour_steps else [])]
     out = CACHE / "geometry_stability" / "_".join([data.name, *tags])
     out.mkdir(parents=True, exist_ok=True)
     device = torch.device("cpu")
@@ -66,6 +69,15 @@ def one_scene(data: Path, mesh_steps: int, image_steps: int, sets: list[str], sh
     # no cosine annealing: the SDF is already a surface, back faces have nothing to contribute
     image_cfg = dataclasses.replace(cfg, steps=image_steps, anneal_end=0.0)
     objective = ImageObjective.from_views(image_cfg, views, norm, views.masks, device)
+    if colour_steps:
+        frozen = [p for name, p in model.named_parameters() if name.startswith(("sdf.", "sharpness."))]
+        for p in frozen:
+            p.requires_grad_(False)
+        colour_cfg = dataclasses.replace(image_cfg, steps=colour_steps)
+        GeometryTrainer(colour_cfg, model, ImageObjective.from_views(colour_cfg, views, norm, views.masks, device),
+                        device).fit(out / "colour_phase", progress=False)
+        for p in frozen:
+            p.requires_grad_(True)
     GeometryTrainer(image_cfg, model, objective, device).fit(out / "image_phase", progress=False)
     after = extract_mesh(model.sdf, norm, cfg.mesh_resolution, cfg.min_component)
     after.export(out / "mesh_after_images.ply")
@@ -81,6 +93,8 @@ def main() -> None:
     ap.add_argument("--image-steps", type=int, default=1000)
     ap.add_argument("--sharpness", type=float, default=None,
                     help="NeuS sharpness s the image steps start from (default: the network's initial value)")
+    ap.add_argument("--colour-steps", type=int, default=0,
+                    help="steps training only the colour network (SDF and s frozen) before the image steps")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--set", dest="extra", action="append", default=[], help="geometry-stage config override")
     args = ap.parse_args()
@@ -88,11 +102,13 @@ def main() -> None:
     t0 = time.time()
     with ProcessPoolExecutor(args.jobs) as pool:
         rows = list(pool.map(one_scene, datas, [args.mesh_steps] * len(datas), [args.image_steps] * len(datas),
-                             [args.extra] * len(datas), [args.sharpness] * len(datas)))
+                             [args.extra] * len(datas), [args.sharpness] * len(datas),
+                             [args.colour_steps] * len(datas)))
     lines = [f"# geometry stability ({stamp()})", "",
              f"Machine: {machine()}. Scenes {args.res}x{args.res}, {args.views} training views, masks on; `cpu` "
              f"preset{' + ' + ' '.join(args.extra) if args.extra else ''}: {args.mesh_steps} steps fitting the SDF "
-             f"to the scene's mesh.ply, then {args.image_steps} steps of the image objective from it "
+             f"to the scene's mesh.ply, then {args.colour_steps} steps training the colour network alone and "
+             f"{args.image_steps} steps of the image objective from it "
              f"(no cosine annealing, every hash level on). {args.jobs} at a time, 1 thread each; "
              f"{(time.time() - t0) / 60:.1f} min; code {code_version()}.", "",
              "Chamfer and normal error as in geometry.md; 'missed': share of the scene mesh's surface farther than "
