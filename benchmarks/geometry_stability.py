@@ -7,11 +7,11 @@ For each scene: the `cpu` preset's SDF network is fitted to the scene's own mesh
 objective, in the normalisation the image objective uses), then trained on the images (NeuS, with
 masks) for ``--image-steps`` more, starting from that SDF (after ``--colour-steps`` that train the
 colour network alone, the SDF and ``s`` frozen, so that the joint steps do not start from an
-untrained colour). The reconstruction measures (chamfer,
-normal error, share of the true surface missed by more than 2% of the diagonal) are printed for the
-SDF before and after. If the images' objective moves a surface it starts on, no schedule or
-initialisation of the geometry stage can be expected to find that surface from a sphere: what is
-lost here is lost to the objective, not to the optimisation. Writes
+untrained colour). The reconstruction measures (chamfer, normal error, share of the true surface
+missed by more than 2% of the diagonal) are printed for the SDF before and after. If the images'
+objective moves a surface it starts on, no schedule or initialisation of the geometry stage can be
+expected to find that surface from a sphere: what is lost here is lost to the objective, not to the
+optimisation. Writes
 ``benchmarks/results/geometry_stability.md``; meshes in ``benchmarks/.cache/geometry_stability``.
 """
 from __future__ import annotations
@@ -74,7 +74,7 @@ def one_scene(data: Path, mesh_steps: int, image_steps: int, sets: list[str], sh
         for p in frozen:
             p.requires_grad_(False)
         colour_cfg = dataclasses.replace(image_cfg, steps=colour_steps)
-        GeometryTrainer(colour_cfg, model, ImageObjective.from_views(colour_cfg, views, norm, views.masks, device),
+        GeometryTrainer(colour_cfg, model, dataclasses.replace(objective, cfg=colour_cfg),  # the same rays
                         device).fit(out / "colour_phase", progress=False)
         for p in frozen:
             p.requires_grad_(True)

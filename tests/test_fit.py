@@ -201,8 +201,8 @@ def test_data_parallel_over_two_cpu_processes(tiny_scene, tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
                            "29517", "-m", "nefii.cli.main", "fit", str(tiny_scene), "--out", str(run), "--preset",
-                           "tiny", "--quiet", "--device", "cpu", "--set", "threads=1"], env=env, capture_output=True, text=True,
-                          timeout=300)
+                           "tiny", "--quiet", "--device", "cpu", "--set", "threads=1"], env=env, capture_output=True,
+                          text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "2 processes" in proc.stdout
     assert "the 2 process replicas are in sync" in proc.stdout
