@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 TORCH_VERSION ?= 2.13.0
 EXTRAS ?= dev,synth,colmap
 
-.PHONY: demo test install clean
+.PHONY: demo test install clean mutants
 
 $(VENV)/.installed: pyproject.toml Makefile
 	@# Mitsuba's fast llvm variant (nefii synth) needs libLLVM >= 16; Debian 12's default 15 aborts.
@@ -34,3 +34,20 @@ test: install
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info
+
+# Mutation testing (slow, not run by CI): mutmut mutates src/nefii/render, fields, fit/losses.py, evaluate
+# and io/checkpoints.py and runs the tests listed in pyproject.toml's [tool.mutmut] against each mutant.
+# It works on a copy of the tree in build/mutmut. SCOPE=checkpoints|losses|metrics|table1|evaluate|fields|render
+# narrows the copy's configuration to one scope (tests/mutmut_scope.py); MUTMUT_CHILDREN sets the workers.
+# Results: `cd build/mutmut && ../../.venv/bin/mutmut results` (or `browse`). See docs/testing.md.
+MUTMUT_VERSION ?= 3.8.1
+SCOPE ?= all
+MUTMUT_CHILDREN ?= 2
+mutants: install
+	$(PY) -m pip install --quiet "mutmut==$(MUTMUT_VERSION)"
+	rm -rf build/mutmut && mkdir -p build/mutmut
+	cp -r src tests pyproject.toml build/mutmut/
+	$(PY) tests/mutmut_scope.py build/mutmut/pyproject.toml $(SCOPE)
+	cd build/mutmut && OMP_NUM_THREADS=1 nice -n 19 $(abspath $(VENV))/bin/mutmut run --max-children $(MUTMUT_CHILDREN); \
+		$(abspath $(VENV))/bin/mutmut results --all true > results.txt; \
+		grep -c ": killed" results.txt | sed 's/^/killed: /'; grep -v ": killed" results.txt

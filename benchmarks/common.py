@@ -11,7 +11,9 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parent
-CACHE = Path(os.environ.get("NEFII_BENCH_CACHE", ROOT / ".cache"))
+REPO = ROOT.parent
+"""the repository root: where ``python -m benchmarks.<name>`` runs"""
+CACHE = Path(os.environ.get("NEFII_BENCH_CACHE", ROOT / ".cache")).resolve()
 """scenes and runs; ``$NEFII_BENCH_CACHE`` points another checkout's benchmarks at the same cache"""
 RESULTS = ROOT / "results"
 
@@ -63,7 +65,7 @@ def code_version() -> str:
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                               check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], cwd=ROOT.parent, capture_output=True,
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], cwd=REPO, capture_output=True,
                                text=True, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"

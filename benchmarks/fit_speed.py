@@ -1,8 +1,9 @@
 """Speed and memory of the ``cpu`` preset's training step, beside the raw Embree ray-cast rate.
 
-    python benchmarks/fit_speed.py [--data DIR] [--steps 200] [--preset cpu] [--device auto|cpu|cuda]
+    python -m benchmarks.fit_speed [--data DIR] [--steps 200] [--preset cpu] [--device auto|cpu|cuda]
 
-Prints the figures and writes ``benchmarks/results/fit_speed.md`` (``fit_speed_cuda.md`` when the
+The fit is set up as ``nefii fit`` sets it up (``nefii.fit.session.prepare_fit``: first hits, model,
+light initialisation). Prints the figures and writes ``benchmarks/results/fit_speed.md`` (``fit_speed_cuda.md`` when the
 step runs on a GPU; Embree's ray casts stay on the CPU either way). Without ``--data`` it uses
 the smallest built-in scene at 128x128 with 64 training views (synthesised once, cached).
 """
@@ -10,24 +11,19 @@ from __future__ import annotations
 
 import argparse
 import resource
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine, scene, stamp, write_results  # noqa: E402
+from nefii.cli.common import pick_device, set_threads
+from nefii.fit.config import resolve_config
+from nefii.fit.session import prepare_fit
+from nefii.geometry import MeshGeometry, Rays
+from nefii.render.frame import normalize
+from nefii.synth import smallest_scene
 
-from nefii.cli.common import pick_device, set_threads  # noqa: E402
-from nefii.data import load_scene  # noqa: E402
-from nefii.fit.build import build_model  # noqa: E402
-from nefii.fit.config import resolve_config  # noqa: E402
-from nefii.fit.pixels import first_hits  # noqa: E402
-from nefii.fit.trainer import Trainer  # noqa: E402
-from nefii.geometry import MeshGeometry, Rays  # noqa: E402
-from nefii.render.frame import normalize  # noqa: E402
-from nefii.synth import smallest_scene  # noqa: E402
+from .common import machine, scene, stamp, write_results
 
 
 def embree_rate(geometry: MeshGeometry, n: int = 1_000_000, repeats: int = 3) -> tuple[float, float]:
@@ -60,13 +56,10 @@ def main() -> None:
     data = args.data or scene(smallest_scene())
     cfg = resolve_config(args.preset, [])
     threads = set_threads(cfg.threads)
-    sc = load_scene(data, "train")
-    geometry = MeshGeometry.from_file(sc.mesh_path)
     t0 = time.perf_counter()
-    pixels = first_hits(sc, geometry).to(device)
-    t_first = time.perf_counter() - t0
-    box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
-    trainer = Trainer(cfg, build_model(cfg, box), geometry, pixels, device)
+    session = prepare_fit(cfg, data, device=device)
+    t_setup = time.perf_counter() - t0
+    cfg, sc, geometry, pixels, trainer = session.config, session.scene, session.geometry, session.pixels, session.trainer
     for _ in range(10):  # warm up (allocator, first unobserved step)
         trainer.train_step()
     rays = 0
@@ -90,7 +83,7 @@ def main() -> None:
         ("preset", f"{args.preset}: {cfg.batch_pixels} px/step, N={cfg.num_samples} (x3 directions)"),
         ("device of the training step", str(device)),
         ("CPU threads (Embree, and the step on the CPU)", str(threads)),
-        ("first hits of all training pixels", f"{t_first:.2f} s"),
+        ("fit setup (first hits of all training pixels, model, light initialisation)", f"{t_setup:.2f} s"),
         ("steps/s", f"{steps_s:.2f}"),
         ("time per step", f"{1000 / steps_s:.1f} ms"),
         ("direction samples/s (secondary rays + their shading)", f"{rays_s / 1e6:.3f} M"),

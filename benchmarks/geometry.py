@@ -1,14 +1,14 @@
 """The geometry stage on the built-in scenes: reconstructed mesh against the scene's mesh.ply, and the
 fit's albedo / roughness with reconstructed against ground-truth geometry.
 
-    python benchmarks/geometry.py [--scenes bowl cup ...] [--res 128] [--views 64] [--masks on off]
+    python -m benchmarks.geometry [--scenes bowl cup ...] [--res 128] [--views 64] [--masks on off]
                                   [--fits [SCENE ...]] [--fit-res 128] [--jobs 2] [--set key=value ...]
 
 For each scene (and each masks setting) runs ``nefii geometry`` (``cpu`` preset) and measures the
 chamfer distance (relative to the scene's bounding-box diagonal) and normal angle error against
 ``mesh.ply``, wall time and peak memory. With ``--fits``, also ``nefii fit`` + ``nefii eval`` on
 the reconstructed geometry (mesh mode) beside the ground-truth-geometry fit that
-``benchmarks/quality.py`` caches. Runs live in ``benchmarks/.cache/geometry`` and are reused.
+``benchmarks.quality`` caches. Runs live in ``benchmarks/.cache/geometry`` and are reused.
 Writes ``benchmarks/results/geometry.md``.
 """
 from __future__ import annotations
@@ -24,16 +24,17 @@ from pathlib import Path
 import torch
 import trimesh
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CACHE, code_version, machine, scene, set_flags, stamp, write_results  # noqa: E402
+from nefii.camera import pixel_rays
+from nefii.data import load_scene
+from nefii.evaluate.run import eval_mask, ground_truth
+from nefii.evaluate.table1 import ViewArrays, mean_scores, view_scores
+from nefii.fit.model import material_at
+from nefii.fit.outputs import load_run
+from nefii.geometry import MeshGeometry, Rays
+from nefii.sdf.metrics import mesh_distance
 
-from nefii.camera import pixel_rays  # noqa: E402
-from nefii.data import load_scene  # noqa: E402
-from nefii.evaluate.table1 import ViewArrays, mean_scores, view_scores  # noqa: E402
-from nefii.fit.outputs import load_run, material_at  # noqa: E402
-from nefii.geometry.base import Rays  # noqa: E402
-from nefii.geometry.mesh import MeshGeometry  # noqa: E402
-from nefii.sdf.metrics import mesh_distance  # noqa: E402
+from .common import CACHE, code_version, machine, scene, set_flags, stamp, write_results
+from .quality import run_dir, run_one
 
 
 def nefii(*args: str) -> None:
@@ -80,7 +81,6 @@ def albedo_on(run: Path, mesh: Path) -> float:
     fitted = load_run(run)
     views = load_scene(fitted.data, "test")
     geometry = MeshGeometry.from_file(mesh)
-    gt = views.ground_truth
     scores = []
     for v in range(len(views)):
         H, W = views.height, views.width
@@ -89,25 +89,17 @@ def albedo_on(run: Path, mesh: Path) -> float:
         idx = hit.valid.nonzero().squeeze(-1)
         albedo = torch.zeros(H * W, 3)
         albedo[idx] = material_at(fitted.model, hit.position[idx], hit.lookup_normal[idx]).albedo.cpu()
-        image = views.images[v].numpy()
-        pred = ViewArrays(image, albedo.reshape(H, W, 3).numpy(), None, None)
-        truth = ViewArrays(image, gt.albedo[v].numpy(), None, None)
-        scores.append(view_scores(pred, truth, gt.mask[v].numpy().astype(bool))[0])
+        truth = ground_truth(views, v)
+        pred = ViewArrays(truth.rgb, albedo.reshape(H, W, 3).numpy(), None, None)
+        mask = eval_mask(views, v, hit.valid.reshape(H, W).numpy())
+        scores.append(view_scores(pred, ViewArrays(truth.rgb, truth.albedo, None, None), mask)[0])
     return mean_scores(scores)["masked"]["albedo_psnr"]
 
 
 def ground_truth_fit(name: str, data: Path, threads: int) -> dict:
-    """The full model on the scene's own mesh: ``benchmarks/quality.py``'s run, fitted here if missing."""
-    from quality import run_one  # noqa: PLC0415
-
+    """The full model on the scene's own mesh: ``benchmarks.quality``'s run, fitted here if missing."""
     run_one(data, name, "full", [], threads, 64)
-    return json.loads((ground_truth_run(name) / "eval" / "metrics.json").read_text())["masked"]
-
-
-def ground_truth_run(name: str) -> Path:
-    from quality import run_dir  # noqa: PLC0415
-
-    return run_dir(name, "full")
+    return json.loads((run_dir(name, "full") / "eval" / "metrics.json").read_text())["masked"]
 
 
 def main() -> None:
@@ -118,7 +110,7 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=64)
     ap.add_argument("--fits", nargs="*", metavar="SCENE", default=None,
                     help="also fit materials on the reconstructed geometry (of these scenes; none named: all), at "
-                         "--fit-res, beside quality.py's fit on the ground-truth mesh")
+                         "--fit-res, beside benchmarks.quality's fit on the ground-truth mesh")
     ap.add_argument("--fit-res", type=int, default=128)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--set", dest="extra", action="append", default=[], help="geometry-stage config override")
@@ -143,7 +135,7 @@ def main() -> None:
                                                        threads), fitted))
     for r, f, g in zip(fitted, fits, gts):
         r["fit"], r["gt_fit"] = f, g
-        r["transplant"] = albedo_on(ground_truth_run(r["scene"]), r["folder"] / "mesh.ply")
+        r["transplant"] = albedo_on(run_dir(r["scene"], "full"), r["folder"] / "mesh.ply")
     any_fit = bool(fitted)
     lines = [f"# geometry ({stamp()})", "",
              f"Machine: {machine()}. Scenes {args.res}x{args.res}, {args.views} training views; `nefii geometry` "
@@ -157,7 +149,7 @@ def main() -> None:
              *([f"Fits: `nefii fit --geometry` (mesh mode, `cpu` preset"
                 f"{' + ' + ' '.join(args.fit_sets) if args.fit_sets else ''}) on the {args.fit_res}x{args.fit_res} "
                 f"scene with the mesh reconstructed above, beside the same fit on the scene's own mesh "
-                f"(quality.py's `full` run); masked albedo PSNR (target: within 1.5 dB) and roughness MSE. "
+                f"(`benchmarks.quality`'s `full` run); masked albedo PSNR (target: within 1.5 dB) and roughness MSE. "
                 f"'GT material on recon' is the ground-truth-geometry fit's material read at the reconstructed "
                 f"mesh's first hits and scored the same way: what the geometry alone costs (a fit on the "
                 f"reconstructed mesh that reaches it loses nothing beyond the geometry).", ""]

@@ -1,6 +1,6 @@
 """Does the geometry stage's image objective keep the true surface? A diagnostic of `nefii geometry`.
 
-    python benchmarks/geometry_stability.py [--scenes cup bowl] [--mesh-steps 1500] [--image-steps 1000]
+    python -m benchmarks.geometry_stability [--scenes cup bowl] [--mesh-steps 1500] [--image-steps 1000]
                                             [--jobs 2] [--set key=value ...] [--sharpness S] [--colour-steps K]
 
 For each scene: the `cpu` preset's SDF network is fitted to the scene's own mesh.ply (the from-mesh
@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -27,17 +26,17 @@ from pathlib import Path
 import torch
 import trimesh
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CACHE, code_version, machine, scene, stamp, write_results  # noqa: E402
+from nefii.data import load_scene
+from nefii.sdf.config import resolve_geometry_config
+from nefii.sdf.extract import extract_mesh
+from nefii.sdf.from_mesh import MeshObjective, mesh_signed_distances
+from nefii.sdf.metrics import MeshDistance, mesh_distance
+from nefii.sdf.model import NeuSModel
+from nefii.sdf.networks import Sharpness
+from nefii.sdf.normalization import normalization_from_cameras
+from nefii.sdf.train import GeometryTrainer, ImageObjective
 
-from nefii.data import load_scene  # noqa: E402
-from nefii.sdf.config import resolve_geometry_config  # noqa: E402
-from nefii.sdf.extract import extract_mesh  # noqa: E402
-from nefii.sdf.from_mesh import MeshObjective, mesh_signed_distances  # noqa: E402
-from nefii.sdf.metrics import MeshDistance, mesh_distance  # noqa: E402
-from nefii.sdf.model import NeuSModel  # noqa: E402
-from nefii.sdf.normalization import normalization_from_cameras  # noqa: E402
-from nefii.sdf.train import GeometryTrainer, ImageObjective  # noqa: E402
+from .common import CACHE, code_version, machine, scene, stamp, write_results
 
 
 def one_scene(data: Path, mesh_steps: int, image_steps: int, sets: list[str], sharpness: float | None,
@@ -62,15 +61,14 @@ def one_scene(data: Path, mesh_steps: int, image_steps: int, sets: list[str], sh
     GeometryTrainer(cfg, model, MeshObjective(cfg, distances), device).fit(out / "mesh_phase", progress=False)
     before = extract_mesh(model.sdf, norm, cfg.mesh_resolution, cfg.min_component)
     before.export(out / "mesh_fitted.ply")
-    if sharpness is not None:
-        with torch.no_grad():
-            model.sharpness.v.fill_(math.log(sharpness) / 10.0)
+    if sharpness is not None:  # a fresh sharpness module starting at s (``Sharpness(init)``: s = exp(10 init))
+        model.sharpness = Sharpness(math.log(sharpness) / 10.0)
     s0 = float(model.sharpness().detach())
     # no cosine annealing: the SDF is already a surface, back faces have nothing to contribute
     image_cfg = dataclasses.replace(cfg, steps=image_steps, anneal_end=0.0)
     objective = ImageObjective.from_views(image_cfg, views, norm, views.masks, device)
     if colour_steps:
-        frozen = [p for name, p in model.named_parameters() if name.startswith(("sdf.", "sharpness."))]
+        frozen = [*model.sdf.parameters(), *model.sharpness.parameters()]
         for p in frozen:
             p.requires_grad_(False)
         colour_cfg = dataclasses.replace(image_cfg, steps=colour_steps)

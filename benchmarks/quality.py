@@ -1,6 +1,6 @@
 """Table 1 on the built-in scenes: the full model and the four ablations of Sec. 4.3.
 
-    python benchmarks/quality.py [--scenes bowl cup ...] [--configs full indirect_off ...]
+    python -m benchmarks.quality [--scenes bowl cup ...] [--configs full indirect_off ...]
                                  [--res 128] [--views 64] [--jobs 2] [--set key=value ...]
 
 Each (scene, config) is ``nefii fit`` (``cpu`` preset plus the ablation's switch) then
@@ -20,8 +20,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CACHE, code_version, machine, scene, set_flags, stamp, write_results  # noqa: E402
+from .common import CACHE, code_version, machine, scene, set_flags, stamp, write_results
 
 CONFIGS = {
     "full": [],

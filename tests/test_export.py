@@ -27,7 +27,8 @@ from nefii.errors import InputError
 from nefii.export.asset import Z_UP_TO_Y_UP
 from nefii.export.bake import push_pull, rasterise
 from nefii.export.three import locate_three, module_sources
-from nefii.fit.outputs import load_run, material_at
+from nefii.fit.model import material_at
+from nefii.fit.outputs import load_run
 from nefii.io.exr import read_exr
 from nefii.io.images import srgb_to_linear
 
@@ -199,16 +200,6 @@ def test_the_bake_reads_the_material_along_the_lookup_normals(run):
     np.testing.assert_allclose(split.normals, plain.normals)
     np.testing.assert_allclose(split.textures.albedo, along.textures.albedo, atol=1e-6)
     assert np.abs(split.textures.albedo - plain.textures.albedo).max() > 1e-2
-    # lookup normals scaled to half the offset (thin-wall weights) bake as the half offset along the unit ones
-    half = bake_asset(model, v, f, n, 64, lookup_normals=0.5 * tilted)
-    offset = model.material.normal_offset
-    try:
-        model.material.normal_offset = 0.5 * offset
-        along_half = bake_asset(model, v, f, tilted, 64)
-    finally:
-        model.material.normal_offset = offset
-    np.testing.assert_allclose(half.textures.albedo, along_half.textures.albedo, atol=1e-6)
-    assert np.abs(half.textures.albedo - split.textures.albedo).max() > 1e-3
 
 
 def test_envmap_is_the_recovered_light_in_the_design_mapping(glb, run):

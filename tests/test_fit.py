@@ -7,7 +7,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -20,9 +19,8 @@ from nefii.errors import InputError
 from nefii.fit.config import FitConfig, config_from_dict, config_to_dict, resolve_config
 from nefii.fit.distributed import DistContext, local_device
 from nefii.fit.losses import SecondaryHitBuffer, SmoothnessPrior, smoothness
-from nefii.fit.model import SurfacePoints
+from nefii.fit.path_trace import SurfacePoints
 from nefii.fit.policies import Alternation, RoughnessWarmup
-from nefii.render.brdf import Material
 
 
 @pytest.fixture(scope="module")
@@ -134,31 +132,31 @@ def test_policies():
 
 def test_smoothness_prior_compares_neighbours_in_the_tangent_plane():
     """Albedo that changes only across a wall (along z): a prior along the surface z = 0 sees no change,
-    and the same prior at points whose normal lies in the plane does. The tangent plane is the shading
-    normal's: a lookup normal scaled to zero (no offset there) or tilted does not change it."""
-    wall = SimpleNamespace(material=lambda x, n, roughness_override=None: Material(
-        torch.sigmoid(200.0 * x[..., 2:3]).expand(*x.shape[:-1], 3), torch.full(x.shape[:-1], 0.5)))
+    and the same prior at points whose normal lies in the plane does."""
+    def albedo(x):
+        return torch.sigmoid(200.0 * x[..., 2:3]).expand(*x.shape[:-1], 3)
+
     x = torch.rand(4096, 3) * torch.tensor([1.0, 1.0, 0.0])
-    prior = SmoothnessPrior(albedo=1.0, radius=0.05)
+    prior = SmoothnessPrior(weight=1.0, radius=0.05)
     up, side = torch.tensor([0.0, 0.0, 1.0]).expand(4096, 3), torch.tensor([1.0, 0.0, 0.0]).expand(4096, 3)
 
-    def prior_at(shading, lookup):
-        pts = SurfacePoints(x, shading, shading, shading, lookup)
-        return smoothness(wall, pts, wall.material(x, lookup), prior, None, torch.Generator().manual_seed(0)).item()
+    def prior_at(shading):
+        near = prior.neighbours(x, shading, torch.Generator().manual_seed(0))
+        torch.testing.assert_close(((near - x) * shading).sum(-1), torch.zeros(4096), atol=1e-6, rtol=0)
+        return smoothness(albedo(x), albedo(near), prior.weight).item()
 
-    assert prior_at(up, up) == 0.0
-    assert prior_at(side, side) > 0.3
-    assert prior_at(up, torch.zeros_like(up)) == prior_at(up, side) == 0.0
-    assert prior_at(side, torch.zeros_like(up)) > 0.3
+    assert prior_at(up) == 0.0
+    assert prior_at(side) > 0.3
+    assert smoothness(torch.zeros(5, 3), torch.ones(5, 3), 0.25).item() == 0.25
 
 
-def test_path_trace_reads_the_material_along_the_lookup_normal():
-    """With a material offset, the material a path sees is ``M(x + d * lookup_normal)``: changing only the
-    lookup normal changes it, changing only the shading normal does not."""
+def test_the_material_is_decoded_along_the_lookup_normal():
+    """With a material offset, the material at a surface point is ``M(x + d * lookup_normal)``: changing only
+    the lookup normal changes it, changing only the shading normal does not."""
     import trimesh
 
     from nefii.fit.build import build_model
-    from nefii.fit.model import path_trace
+    from nefii.fit.model import decode_material
     from nefii.geometry import MeshGeometry
 
     ball = trimesh.creation.icosphere(subdivisions=2)
@@ -175,13 +173,16 @@ def test_path_trace_reads_the_material_along_the_lookup_normal():
     def albedo(normal, lookup):
         pts = SurfacePoints(n.clone(), normal, n.clone(), n.clone(), lookup)
         with torch.no_grad():
-            return path_trace(model, geometry, pts, 2, torch.Generator().manual_seed(1)).material.albedo
+            return decode_material(model, pts.position, pts.lookup_normal).albedo
 
     base = albedo(n, n)
     torch.testing.assert_close(albedo(tilt, n), base)
     assert (albedo(n, tilt) - base).abs().max() > 1e-2
+    offset = model.material.normal_offset
     with torch.no_grad():
-        torch.testing.assert_close(albedo(n, tilt), model.material(n, tilt).albedo)
+        direct = torch.sigmoid(model.material.net(model.material.encoding(
+            (n + offset * tilt - model.material.box_lo) / model.material.box_size))[..., :3])
+    torch.testing.assert_close(albedo(n, tilt), direct)
 
 
 def test_secondary_buffer_is_a_ring():
@@ -218,11 +219,11 @@ def test_a_non_finite_loss_is_reported_and_never_saved(tiny_scene, tmp_path, mon
     calls = {"n": 0}
 
     def poisoned(*args, **kwargs):
-        terms, traced = real(*args, **kwargs)
+        terms = real(*args, **kwargs)
         calls["n"] += 1
         if calls["n"] == 4:
             terms = type(terms)(terms.total * float("nan"), terms.render, terms.cache, terms.background)
-        return terms, traced
+        return terms
 
     monkeypatch.setattr(trainer_mod, "observed_loss", poisoned)
     run = tmp_path / "nan"

@@ -160,60 +160,17 @@ def hollow_ball(tmp_path_factory):
     return path
 
 
-def test_thickness_weights_top_a_wall_up_to_the_separation():
-    """Two faces of a wall t thick, each pushed out by d w, are encoded t + 2 d w = max(t, 2d) apart."""
-    from nefii.geometry.mesh import thickness_weights
-    t = np.array([0.0, 0.05, 0.1, 0.3, np.inf])
-    w = thickness_weights(t, 0.1)
-    np.testing.assert_allclose(w, [1.0, 0.5, 0.0, 0.0, 0.0])
-    np.testing.assert_allclose(t[:3] + 0.1 * w[:3], [0.1, 0.1, 0.1])
-    with pytest.raises(ValueError):
-        thickness_weights(t, 0.0)
-
-
-def test_wall_thickness_is_cast_inwards_along_the_lookup_normals(hollow_ball):
-    """Both faces of the hollow ball's wall measure 0.1 (to the facets' error); a solid ball its diameter;
-    an open sheet nothing (inf)."""
-    mesh = MeshGeometry.from_file(hollow_ball)
-    t = mesh.wall_thickness()
-    assert np.all(np.abs(t - 0.1) < 0.005), (t.min(), t.max())
-    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-    np.testing.assert_allclose(MeshGeometry(ball.vertices, ball.faces).wall_thickness(), 2.0, atol=0.02)
-    sheet = np.array([[-1, -1, 0.0], [1, -1, 0.0], [1, 1, 0.0], [-1, 1, 0.0]])
-    assert np.isinf(MeshGeometry(sheet, np.array([[0, 1, 2], [0, 2, 3]])).wall_thickness()).all()
-
-
-def test_lookup_separation_scales_the_lookup_normals_of_thin_walls_only(hollow_ball, tmp_path):
-    """``from_file(lookup_separation=s)``: a hit's lookup normal is the shading normal times
-    ``1 - 0.1 / (s * diagonal)`` on the hollow ball, and zero on a solid ball (thicker than s)."""
-    mesh = MeshGeometry.from_file(hollow_ball, lookup_separation=0.1)
-    sep = 0.1 * mesh.scale                                                   # diagonal 2 sqrt(3)
-    gen = torch.Generator().manual_seed(0)
-    hit = mesh.intersect(random_rays(4000, gen))
-    v = hit.valid
-    assert v.sum() > 1000
-    length = hit.lookup_normal[v].norm(dim=-1)
-    torch.testing.assert_close(length, torch.full_like(length, 1 - 0.1 / sep), atol=0.02, rtol=0)
-    torch.testing.assert_close(normalize(hit.lookup_normal[v]), hit.normal[v], atol=1e-4, rtol=0)
-    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-    ball.export(tmp_path / "ball.ply")
-    solid = MeshGeometry.from_file(tmp_path / "ball.ply", lookup_separation=0.1)
-    assert np.abs(solid.lookup_normals).max() == 0.0
-    hit = solid.intersect(random_rays(1000, gen))
-    assert hit.valid.any() and hit.lookup_normal.abs().max() == 0.0
-
-
-def test_offsets_interpolate_by_direction_and_length():
-    """For unit vertex vectors, the renormalised interpolation; for scaled ones, the interpolated direction
-    with the interpolated length (0 where all three are 0)."""
-    from nefii.geometry.mesh import interpolate_offsets
+def test_normals_interpolate_to_unit_length_and_hit_the_vertices():
+    """The interpolated normal is unit; at a corner (barycentric one-hot) it is that vertex's normal; for
+    vertex normals all equal, it is that normal."""
+    from nefii.geometry.mesh import interpolate_normals
     gen = torch.Generator().manual_seed(0)
     n = normalize(torch.randn(500, 3, 3, generator=gen) + torch.tensor([0.0, 0.0, 3.0]))
     b = torch.rand(500, 3, generator=gen)
     b = b / b.sum(-1, keepdim=True)
-    torch.testing.assert_close(interpolate_offsets(n, b), normalize((n * b.unsqueeze(-1)).sum(-2)))
-    s = torch.rand(500, 3, generator=gen)
-    out = interpolate_offsets(n * s.unsqueeze(-1), b)
-    torch.testing.assert_close(out.norm(dim=-1), (s * b).sum(-1))
-    torch.testing.assert_close(normalize(out), normalize((n * (s * b).unsqueeze(-1)).sum(-2)))
-    assert interpolate_offsets(torch.zeros(4, 3, 3), b[:4]).abs().max() == 0.0
+    out = interpolate_normals(n, b)
+    torch.testing.assert_close(out.norm(dim=-1), torch.ones(500))
+    corner = torch.nn.functional.one_hot(torch.randint(3, (500,), generator=gen), 3).float()
+    torch.testing.assert_close(interpolate_normals(n, corner), (n * corner.unsqueeze(-1)).sum(-2))
+    same = n[:, :1].expand(500, 3, 3)
+    torch.testing.assert_close(interpolate_normals(same, b), n[:, 0])

@@ -1,9 +1,8 @@
-"""The Mitsuba peer of benchmarks/peers: its texture lookup agrees with Mitsuba, its fit lowers the
-loss, and its evaluation (and nefii's albedo curve) give finite Table 1 numbers on a tiny scene."""
+"""The Mitsuba peer of benchmarks.peers: its texture lookup at nefii's hits is what Mitsuba shades, its fit
+lowers the loss, its evaluation (and nefii's albedo curve) give finite Table 1 numbers on a tiny scene, and
+the report draws its table and chart."""
 import json
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,12 +14,8 @@ pytest.importorskip("xatlas")
 from nefii.camera import pixel_rays  # noqa: E402
 from nefii.cli.main import main  # noqa: E402
 from nefii.data import load_scene  # noqa: E402
-from nefii.export.unwrap import unwrap  # noqa: E402
 from nefii.geometry import MeshGeometry  # noqa: E402
 from nefii.synth import scenes  # noqa: E402
-
-PEERS = Path(__file__).resolve().parent.parent / "benchmarks" / "peers"
-sys.path.insert(0, str(PEERS))
 
 
 @pytest.fixture(scope="module")
@@ -43,24 +38,24 @@ def tiny(tmp_path_factory, mi):
 
 
 def test_texture_lookup_at_hits_is_what_mitsuba_shades(tiny, mi):
-    """A random base-colour texture read at Embree hits through the atlas UVs (views.py) equals Mitsuba's
+    """A random base-colour texture read at Embree hits through the atlas UVs (views.hit_uv) equals Mitsuba's
     own base colour at the same camera rays; reading it with v flipped does not."""
-    from nefii.synth.mitsuba_backend import _bitmap_texture, build_mesh, principled
-    from views import cast_test_views, hit_uv, sample_bilinear
+    from benchmarks.peers.mitsuba_peer import atlas_mesh, bitmap_texture, texture_at
+    from benchmarks.peers.views import cast_test_views, hit_uv
+    from nefii.synth.mitsuba_backend import build_mesh, principled
 
     test = load_scene(tiny, "test")
     geometry = MeshGeometry.from_file(test.mesh_path, threads=1)
-    atlas = unwrap(geometry.vertices, geometry.faces, 64)
+    split = atlas_mesh(geometry.vertices, geometry.faces, geometry.vertex_normals, 64)
     tex = np.random.default_rng(0).uniform(0.05, 0.95, (64, 64, 3)).astype(np.float32)
-    bsdf = mi.load_dict(principled(mi, _bitmap_texture(mi, tex), _bitmap_texture(mi, np.full((64, 64), 0.5))))
-    mesh = build_mesh(mi, geometry.vertices[atlas.source], atlas.faces, geometry.vertex_normals[atlas.source],
-                      atlas.uv, bsdf)
+    bsdf = mi.load_dict(principled(mi, bitmap_texture(mi, tex), bitmap_texture(mi, np.full((64, 64), 0.5))))
+    mesh = build_mesh(mi, split.vertices, split.faces, split.normals, split.uv, bsdf)
     scene = mi.load_dict({"type": "scene", "object": mesh})
 
     hits = cast_test_views(test, geometry).hits[0]
-    ours = sample_bilinear(tex, hit_uv(hits, geometry.vertices, geometry.faces, atlas))
-    flipped_uv = hit_uv(hits, geometry.vertices, geometry.faces, atlas) * [1, -1] + [0, 1]
-    flipped = sample_bilinear(tex, flipped_uv)
+    uv = hit_uv(hits, split)
+    ours = texture_at(mi, tex, uv)
+    flipped = texture_at(mi, tex, uv * [1, -1] + [0, 1])
 
     o, d = pixel_rays(test.cameras.c2w[0], test.cameras.K[0], test.height, test.width)
     o, d = o.reshape(-1, 3).float().numpy(), d.reshape(-1, 3).float().numpy()
@@ -77,8 +72,8 @@ def test_texture_lookup_at_hits_is_what_mitsuba_shades(tiny, mi):
 
 
 def test_peer_fit_lowers_the_loss_and_scores_with_nefii_eval(tiny, tmp_path):
-    from mitsuba_inverse import peer_worker
-    from mitsuba_peer import PeerConfig
+    from benchmarks.peers.mitsuba_inverse import peer_worker
+    from benchmarks.peers.mitsuba_peer import PeerConfig
 
     torch.set_num_threads(1)
     cfg = PeerConfig(texture_size=64, env_height=8, spp=2, threads=1)
@@ -97,7 +92,7 @@ def test_peer_fit_lowers_the_loss_and_scores_with_nefii_eval(tiny, tmp_path):
 
 
 def test_nefii_curve_snapshots_are_scored(tiny):
-    from nefii_curve import run_curve
+    from benchmarks.peers.nefii_curve import run_curve
 
     points, cfg, fit_s = run_curve(tiny, threads=1, every=2, max_steps=4)
     assert [p.step for p in points] == [0, 2, 4] and cfg.preset == "cpu"
@@ -105,14 +100,19 @@ def test_nefii_curve_snapshots_are_scored(tiny):
     assert all(math.isfinite(p.scores["albedo_psnr"]) for p in points)
 
 
-def test_verdict_names_the_winner_of_each_column():
-    from report import PEER, REFERENCE, Row, verdict
+def test_report_tables_and_charts_the_cached_curves(tmp_path, monkeypatch):
+    from benchmarks import common
+    from benchmarks.peers import report
 
-    cols = ("albedo_psnr", "albedo_ssim", "roughness_mse", "rgb_psnr", "fit_min", "peak_gib")
-    full = Row("nefii full", dict(zip(cols, (22.0, 0.8, 0.05, 27.0, 13.0, 0.7))), 1, "x")
-    peer = Row(PEER, dict(zip(cols, (23.0, 0.7, 0.06, 25.0, 13.0, 0.5))), 1, "y")
-    ref = Row(REFERENCE, {"albedo_psnr": 20.0}, None, "")
-    text = verdict("bowl", [full, peer, ref])
-    assert "albedo PSNR: Mitsuba 3 prb (23.00)" in text and "novel-view PSNR: nefii full (27.00)" in text
-    assert "The peer beats nefii full on albedo PSNR 23.00 vs 22.00" in text
-    assert "roughness MSE 0.0600 vs 0.0500" in text.split("nefii full beats the peer on")[1]
+    monkeypatch.setattr(common, "CACHE", tmp_path)
+    (tmp_path / "peers" / "bowl").mkdir(parents=True)
+    (report.peer_dir("bowl") / "curve.csv").write_text("step,fit_s,loss,albedo_psnr\n1,0.5,0.1,\n2,60,0.1,21.5\n"
+                                                     "3,120,0.1,22.5\n")
+    (report.peer_dir("bowl") / "nefii_curve.csv").write_text("step,fit_s,albedo_psnr\n0,0,19\n100,90,23\n")
+    png = tmp_path / "peers.png"
+    assert report.plot(png, ["bowl", "cup"], {"bowl": 20.0}) and png.stat().st_size > 5000
+    assert not report.plot(tmp_path / "none.png", ["cup"], {})
+    row = report.Row(report.PEER, {"albedo_psnr": 23.0, "roughness_mse": float("nan")}, 1, "abc", "9 steps")
+    head, rule, line = report.table([row])
+    assert head.count("|") == rule.count("|") == line.count("|")
+    assert "| Mitsuba 3 prb | 23.00 | n/a | n/a |" in line and line.endswith("| 1 | abc | 9 steps |")

@@ -523,13 +523,6 @@ def test_a_reconstruction_takes_its_own_material_offset_and_normal_smoothing(tmp
     sdf_mode = GeometrySource("sdf", tmp_path / "geo" / "mesh.ply", tmp_path / "geo")
     sdf_r = adapt_to_source(cfg, sdf_mode)[1]
     assert sdf_r.normal_sigma == sdf_r.lookup_sigma == 0.0                   # the SDF's gradient is its normal
-    assert recon_r.lookup_separation == 0.0                                  # off unless asked for
-    by_t = dataclasses.replace(cfg, offset_by_thickness_reconstructed=True)
-    recon_t = adapt_to_source(by_t, recon)[1]
-    assert recon_t.lookup_separation == 2 * 0.005                            # twice the reconstruction's offset
-    assert GeometrySource.from_dict(recon_t.to_dict()) == recon_t
-    assert adapt_to_source(by_t, mesh)[1].lookup_separation == 0.0            # a given mesh: as it is
-    assert adapt_to_source(by_t, sdf_mode)[1].lookup_separation == 0.0
 
 
 def test_smoothed_vertex_normals_lose_noise_and_keep_the_faces_of_a_thin_wall_apart():

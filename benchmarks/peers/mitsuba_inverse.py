@@ -1,23 +1,21 @@
-"""Issue 7: nefii side by side with a peer, Mitsuba 3 inverse rendering, on the built-in scenes.
+"""nefii side by side with a peer, Mitsuba 3 inverse rendering, on the built-in scenes.
 
-    python benchmarks/peers/mitsuba_inverse.py [--scenes bowl cup] [--budget-s S] [--threads 1]
+    python -m benchmarks.peers.mitsuba_inverse [--scenes bowl cup] [--budget-s S] [--threads 1]
         [--res 128 --views 64] [--jobs 2] [--skip-nefii] [--no-curve] [--force] [--set KEY=VALUE]
         [--peer-lr-env 0.2 ...]  (every PeerConfig field has a --peer-* flag)
 
 Per scene, on the same data, mesh, test views and eval code:
 
 * nefii ``full``, ``light_envmap`` (the env-map-grid baseline) and ``physg`` (``visibility=off,
-  indirect=off``, the PhySG-style baseline): ``benchmarks/quality.py``'s runs, reused when complete
+  indirect=off``, the PhySG-style baseline): ``benchmarks.quality``'s runs, reused when complete
   and fitted (``cpu`` preset, ``--threads`` each) when missing, unless ``--skip-nefii``;
-* the Mitsuba peer (``mitsuba_peer``): ``prb`` on ``llvm_ad_rgb`` optimising principled textures
-  over the ``nefii export`` xatlas atlas and an env map, for the wall-clock budget of nefii full's
-  fit on that scene (or ``--budget-s``), then scored by ``peer_eval``; cached in
-  ``benchmarks/.cache/peers/<scene>/`` (textures, env map, curve.csv, result.json, eval/);
-* nefii's albedo PSNR over fitting time (``nefii_curve``: the full fit re-run with snapshots),
-  ``benchmarks/.cache/peers/<scene>/nefii_curve.csv``, unless ``--no-curve``.
+* the Mitsuba peer (``mitsuba_peer``) for the wall-clock budget of nefii full's fit on that scene
+  (or ``--budget-s``), then scored by ``peer_eval``; cached in ``benchmarks/.cache/peers/<scene>/``
+  (textures, env map, curve.csv, result.json, eval/);
+* nefii's albedo PSNR over fitting time (``nefii_curve``), unless ``--no-curve``.
 
-Writes ``benchmarks/results/peers.md`` and ``peers.png`` from whatever is cached. Each fit runs in
-its own process (``--worker``), so its peak RSS is its own; ``--jobs`` of them at a time.
+Ends by writing ``benchmarks/results/peers.md`` and ``peers.png`` (``benchmarks.peers.report``). Each
+fit runs in its own process (``--worker``), so its peak RSS is its own; ``--jobs`` of them at a time.
 """
 from __future__ import annotations
 
@@ -25,6 +23,7 @@ import argparse
 import dataclasses
 import importlib.metadata as md
 import json
+import math
 import os
 import resource
 import subprocess
@@ -33,20 +32,13 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
-sys.path.insert(0, str(HERE))
+import numpy as np
 
-import common  # noqa: E402
-import quality  # noqa: E402
-from mitsuba_peer import PeerConfig  # noqa: E402
+from .. import common, quality
+from .mitsuba_peer import PeerConfig
+from .report import SCENES, peer_dir, write_report
 
-SCENES = ("bowl", "cup", "leaning", "corner")
 NEFII_CONFIGS = ("full", "light_envmap", "physg")
-
-
-def peer_dir(name: str) -> Path:
-    return common.CACHE / "peers" / name
 
 
 def gib(maxrss_kib: int) -> float:
@@ -58,40 +50,36 @@ def gib(maxrss_kib: int) -> float:
 def peer_worker(data: Path, out: Path, budget_s: float, cfg: PeerConfig, eval_spp: int, checks: int,
                 max_steps: int | None = None) -> dict:
     """Fit the peer on ``data`` for ``budget_s`` seconds of steps, score it, write ``out``."""
-    import numpy as np
     import torch
 
     from nefii.data import load_scene
-    from nefii.export.unwrap import unwrap
     from nefii.geometry import MeshGeometry
     from nefii.io.atomic import write_text_atomic
     from nefii.io.exr import write_exr
     from nefii.io.images import write_png
 
-    from mitsuba_peer import MeshData, MitsubaPeer, camera_rig, config_record, premultiplied_images
-    from peer_eval import evaluate
-    from views import cast_test_views, hit_uv, material_scores, scatter, textures_at_views
+    from .mitsuba_peer import MitsubaPeer, atlas_mesh, camera_rig, config_record, premultiplied_images, \
+        textures_at_hits
+    from .peer_eval import evaluate
+    from .views import cast_test_views, hit_uv, material_scores, scatter
 
     torch.set_num_threads(cfg.threads)
     t0 = time.perf_counter()
     train, test = load_scene(data, "train"), load_scene(data, "test")
     geometry = MeshGeometry.from_file(train.mesh_path, threads=cfg.threads)  # nefii's mesh and normals
-    atlas = unwrap(geometry.vertices, geometry.faces, cfg.texture_size)
-    mesh = MeshData(geometry.vertices.astype(np.float64), geometry.faces, geometry.vertex_normals, atlas)
+    mesh = atlas_mesh(geometry.vertices, geometry.faces, geometry.vertex_normals, cfg.texture_size)
     peer = MitsubaPeer(mesh, camera_rig(train), premultiplied_images(train), cfg)
     views = cast_test_views(test, geometry)
-    uvs = [hit_uv(h, geometry.vertices, geometry.faces, atlas) for h in views.hits]
+    uvs = [hit_uv(h, mesh) for h in views.hits]
     setup_s = time.perf_counter() - t0
 
     checked: dict[int, dict] = {}
 
     def check(p: MitsubaPeer, fit_s: float) -> None:
-        base, rough = p.textures()
-        checked[p.step] = material_scores(views, *textures_at_views(views, uvs, base, rough))
+        checked[p.step] = material_scores(views, *textures_at_hits(p.mi, views, uvs, *p.textures()))
 
-    every = budget_s / checks if max_steps is None else float("inf")
     loss_before = peer.mean_image_loss()
-    fit = peer.fit(budget_s, max_steps, check, every)
+    fit = peer.fit(budget_s, max_steps, check, budget_s / checks if max_steps is None else math.inf)
     loss_after = peer.mean_image_loss()
     if fit.steps not in checked:
         check(peer, fit.fit_s)
@@ -120,7 +108,7 @@ def peer_worker(data: Path, out: Path, budget_s: float, cfg: PeerConfig, eval_sp
         "config": config_record(cfg), "eval_spp": eval_spp, "max_steps": max_steps,
         "loss_all_training_views": {"before": loss_before, "after": loss_after, "spp": 16},
         "mesh": {"vertices": len(geometry.vertices), "triangles": len(geometry.faces),
-                 "atlas_vertices": len(atlas.uv)},
+                 "atlas_vertices": len(mesh.vertices)},
         "eval": means,
         "reference": {"constant_albedo": material_scores(views, grey, half)},
         "code": common.code_version(),
@@ -134,7 +122,7 @@ def curve_worker(data: Path, out: Path, threads: int, every: int, overrides: lis
                  max_steps: int | None = None) -> None:
     from nefii.io.atomic import write_text_atomic
 
-    from nefii_curve import run_curve, write_curve_csv
+    from .nefii_curve import run_curve, write_curve_csv
 
     points, cfg, fit_s = run_curve(data, threads, every, overrides, max_steps=max_steps)
     write_curve_csv(out / "nefii_curve.csv", points)
@@ -156,10 +144,10 @@ def versions() -> dict:
 
 # ---------------------------------------------------------------- orchestration
 
-def _subprocess(args: list[str], what: str, threads: int) -> None:
+def run_worker(args: list[str], what: str, threads: int) -> None:
     env = dict(os.environ, OMP_NUM_THREADS=str(max(threads, 1)))
-    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), *args], capture_output=True, text=True,
-                          env=env)
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.peers.mitsuba_inverse", *args], capture_output=True,
+                          text=True, env=env, cwd=common.REPO)
     if proc.returncode != 0:
         raise RuntimeError(f"{what} failed:\n{proc.stderr[-3000:]}")
 
@@ -191,6 +179,20 @@ def budget_for(name: str, override: float | None) -> float:
     return float(row["fit_s"])
 
 
+def command_line(args: argparse.Namespace) -> str:
+    """The command that reproduces this invocation's runs."""
+    cmd = "python -m benchmarks.peers.mitsuba_inverse --scenes " + " ".join(args.scenes)
+    if os.environ.get("NEFII_BENCH_CACHE"):
+        cmd = f"NEFII_BENCH_CACHE={os.environ['NEFII_BENCH_CACHE']} " + cmd
+    if args.budget_s is not None:
+        cmd += f" --budget-s {args.budget_s:g}"
+    if args.threads != 1:
+        cmd += f" --threads {args.threads}"
+    if (args.res, args.views, args.test_views) != (128, 64, 8):
+        cmd += f" --res {args.res} --views {args.views} --test-views {args.test_views}"
+    return cmd + "".join(f" --set {kv}" for kv in args.extra)
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=list(SCENES[:2]))
@@ -208,7 +210,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-curve", action="store_true", help="skip nefii's albedo-over-time re-run")
     ap.add_argument("--force", action="store_true", help="refit the peer and re-run nefii's curve even if cached")
     ap.add_argument("--set", dest="extra", action="append", default=[], metavar="KEY=VALUE",
-                    help="nefii config override for its fits and curve (as quality.py --set)")
+                    help="nefii config override for its fits and curve (as benchmarks.quality --set)")
     for f in dataclasses.fields(PeerConfig):
         if f.name != "threads":
             ap.add_argument(f"--peer-{f.name.replace('_', '-')}", dest=f"peer_{f.name}", type=type(f.default),
@@ -247,94 +249,16 @@ def main(argv: list[str] | None = None) -> None:
             cmd = ["--worker", "peer", "--data", str(datas[s]), "--out", str(out), "--budget-s", str(budget),
                    "--threads", str(args.threads), "--eval-spp", str(args.eval_spp), "--checks", str(args.checks),
                    *peer_flags]
-            jobs.append((_subprocess, (cmd, f"peer {s}", args.threads)))
+            jobs.append((run_worker, (cmd, f"peer {s}", args.threads)))
         if not args.no_curve and (args.force or not curve_is_current(out, datas[s], args.extra)):
             cmd = ["--worker", "curve", "--data", str(datas[s]), "--out", str(out), "--threads", str(args.threads),
                    "--curve-every", str(args.curve_every), *[x for kv in args.extra for x in ("--set", kv)]]
             if args.curve_max_steps is not None:
                 cmd += ["--max-steps", str(args.curve_max_steps)]
-            later.append((_subprocess, (cmd, f"nefii curve {s}", args.threads)))
+            later.append((run_worker, (cmd, f"nefii curve {s}", args.threads)))
     list(pool.map(lambda j: j[0](*j[1]), jobs + later))
     pool.shutdown()
-    write_results(args, time.time() - t_start)
-
-
-def write_results(args: argparse.Namespace, elapsed_s: float) -> None:
-    from report import NEFII_ROWS, PEER, curve_sentence, nefii_row, peer_rows, plot, table, verdict
-
-    order = list(dict.fromkeys([*SCENES, *args.scenes]))
-    per_scene, curves, finals = {}, {}, {}
-    for s in order:
-        rows = [r for c, label in NEFII_ROWS if (r := nefii_row(quality.read_row, s, c, label)) is not None]
-        rows += peer_rows(peer_dir(s) / "result.json")
-        if any(r.system == PEER for r in rows):
-            per_scene[s] = rows
-            curves[s] = {"nefii full": peer_dir(s) / "nefii_curve.csv", PEER: peer_dir(s) / "curve.csv"}
-            finals[s] = {r.system: r.values.get("albedo_psnr") for r in rows}
-    plotted = plot(common.RESULTS / "peers.png", curves, finals)
-    cmd = "python benchmarks/peers/mitsuba_inverse.py --scenes " + " ".join(args.scenes)
-    if os.environ.get("NEFII_BENCH_CACHE"):
-        cmd = f"NEFII_BENCH_CACHE={os.environ['NEFII_BENCH_CACHE']} " + cmd
-    if args.budget_s is not None:
-        cmd += f" --budget-s {args.budget_s:g}"
-    if args.threads != 1:
-        cmd += f" --threads {args.threads}"
-    if (args.res, args.views, args.test_views) != (128, 64, 8):
-        cmd += f" --res {args.res} --views {args.views} --test-views {args.test_views}"
-    cmd += "".join(f" --set {kv}" for kv in args.extra)
-    peer_cfg = None
-    for s in per_scene:
-        f = peer_dir(s) / "result.json"
-        peer_cfg = json.loads(f.read_text())
-        break
-    lines = [f"# peers: nefii and Mitsuba 3 inverse rendering ({common.stamp()})", "",
-             f"Machine: {common.machine()}; " + ", ".join(f"{k} {v}" for k, v in versions().items()) + ".",
-             f"Scenes {args.res}x{args.res}, {args.views} training views, {args.test_views} test views. "
-             f"Reproduce (from the repository root, fits cached in benchmarks/.cache): `{cmd}`. "
-             f"This invocation: {elapsed_s / 60:.1f} min; current code {common.code_version()}.", "",
-             "Every row is scored by nefii's own eval code (`nefii.evaluate.table1`, masked block: object pixels, "
-             "albedo aligned per view and channel by median(gt/pred)) on the same test views, pixel-centre rays "
-             "against the same mesh. nefii rows: `benchmarks/quality.py` runs (`cpu` preset; env-map grid = "
-             "`light.kind=envmap`; PhySG-style = `visibility=off indirect=off`), eval at "
-             f"{args.eval_spp} spp. The peer: Mitsuba's `prb` integrator (llvm_ad_rgb) optimising a principled "
-             "BSDF's base-colour and roughness textures over the xatlas atlas of `nefii export` and a "
-             "low-resolution `envmap` (log radiance, total-variation prior), with Adam, for the wall-clock "
-             "time of nefii full's fit on the same scene; its albedo/roughness are its textures read at the "
-             "test hits, its novel views Mitsuba renders of the recovered scene "
-             f"(depth 12, {args.eval_spp} spp). Wall time: fitting only (setup and curve evaluations off the "
-             "clock); peak GiB: peak RSS of the fitting process. Specular PSNR: the specular lobe's layer.", ""]
-    if peer_cfg is not None:
-        c = peer_cfg["config"]
-        lines += [f"Peer settings: {c['texture_size']}^2 textures, {c['env_height']}x{2 * c['env_height']} env map, "
-                  f"{c['views_per_step']} view(s) x {c['spp']} spp per step, prb max_depth {c['max_depth']}, "
-                  f"{c['loss']} loss, Adam lr {c['lr_texture']} (textures) / {c['lr_env']} (log env), decaying "
-                  f"to x{c['lr_decay']} over the budget, priors: env TV {c['env_tv']}, texture TV "
-                  f"{c['texture_tv']}; {c['threads']} thread(s). These were picked by a handful of 60-second "
-                  "trials on bowl (loss kind, learning rates, texture prior), looking at test albedo PSNR — "
-                  "as nefii's `cpu` preset was tuned on these scenes.", ""]
-    for s, rows in per_scene.items():
-        lines += [f"## {s}", "", *table(rows), ""]
-    lines += ["## Albedo PSNR against fitting time", ""]
-    if plotted:
-        lines += ["![albedo PSNR against time](peers.png)", "",
-                  "nefii's curve is the full fit re-run in process with snapshots (`nefii_curve.py`: same "
-                  "recipe, seed and code, so its last point is the table's nefii-full albedo PSNR when the "
-                  "code has not changed; it writes no checkpoints or previews, and its time axis is its own "
-                  "measured fitting time); the peer's curve is its own run. Both are evaluated off the clock.",
-                  ""]
-        lines += [f"- {t}" for s in per_scene if (t := curve_sentence(
-            s, peer_dir(s) / "curve.csv", peer_dir(s) / "nefii_curve.csv"))]
-        lines.append("")
-    lines += ["## Where each system wins (generated from the numbers above)", ""]
-    lines += [verdict(s, rows) for s, rows in per_scene.items()]
-    missing = [f"{s}/{label}" for s in args.scenes for c, label in NEFII_ROWS if quality.read_row(s, c) is None]
-    missing += [f"{s}/{PEER}" for s in args.scenes if not (peer_dir(s) / "result.json").is_file()]
-    if missing:
-        lines += ["", "Not run yet: " + ", ".join(missing) + "."]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    common.RESULTS.mkdir(exist_ok=True)
-    (common.RESULTS / "peers.md").write_text(text)
+    write_report(args.scenes, command_line(args), time.time() - t_start)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 What it optimises, as Mitsuba's inverse-rendering tutorials do (``mi.traverse`` the scene,
 ``mi.render`` with the parameters, an image loss, ``dr.backward``, Adam, clamp, ``params.update``):
 
-* the ground-truth mesh with the xatlas atlas of ``nefii export`` (``nefii.export.unwrap``);
+* the ground-truth mesh with the xatlas atlas of ``nefii export`` (:func:`atlas_mesh`);
 * its ``principled`` BSDF as nefii's synth renders it (specular 0.5 = F0 0.04, metallic 0):
   ``base_color`` and ``roughness`` bitmaps, bilinear, clamped to [0, 1] and [0.089, 1]
   (nefii's own roughness range) after every step;
@@ -28,10 +28,12 @@ import numpy as np
 
 from nefii.camera import OPENGL_TO_OPENCV
 from nefii.data.scene import SceneData
-from nefii.export.unwrap import UVAtlas
+from nefii.export.unwrap import unwrap
 from nefii.io.exr import read_exr
-from nefii.synth.mitsuba_backend import (GL_TO_MITSUBA_CAMERA, _bitmap_texture, build_mesh, envmap_emitter,
-                                         import_mitsuba, principled)
+from nefii.synth.meshes import TriMesh
+from nefii.synth.mitsuba_backend import GL_TO_MITSUBA_CAMERA, build_mesh, envmap_emitter, import_mitsuba, principled
+
+from .views import TestViews, scatter
 
 ROUGHNESS_MIN = 0.089
 """nefii's roughness floor (``0.911 sigmoid + 0.089``); the peer is held to the same range"""
@@ -117,14 +119,35 @@ def premultiplied_images(scene: SceneData) -> list[np.ndarray]:
     return out
 
 
-@dataclass(frozen=True)
-class MeshData:
-    """The frozen mesh and its atlas: ``atlas.faces[k]`` is ``faces[k]`` over split vertices."""
+def atlas_mesh(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, size: int) -> TriMesh:
+    """The frozen mesh split at the seams of the xatlas atlas of ``nefii export`` (``nefii.export.unwrap``);
+    its triangle ``k`` is ``faces[k]``."""
+    a = unwrap(vertices, faces, size)
+    return TriMesh(vertices[a.source].astype(np.float64), a.faces, normals[a.source], a.uv)
 
-    vertices: np.ndarray
-    faces: np.ndarray
-    normals: np.ndarray
-    atlas: UVAtlas
+
+# ---------------------------------------------------------------- textures
+
+def bitmap_texture(mi, data: np.ndarray) -> dict:
+    """A ``bitmap`` texture as nefii synth's scenes have theirs: raw values, bilinear, clamped."""
+    img = np.ascontiguousarray(data if data.ndim == 3 else data[..., None], dtype=np.float32)
+    return {"type": "bitmap", "bitmap": mi.Bitmap(img), "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp"}
+
+
+def texture_at(mi, data: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """``data`` ``(S_h, S_w[, 3])`` at texture coordinates ``uv`` ``(M, 2)``, read by Mitsuba's own texture
+    lookup (``u`` right, ``v`` down from the top-left, as xatlas and glTF have it)."""
+    tex = mi.load_dict(bitmap_texture(mi, data))
+    si = mi.SurfaceInteraction3f()
+    si.uv = mi.Point2f(*np.asarray(uv, np.float32).T)
+    return np.array(tex.eval(si) if data.ndim == 3 else tex.eval_1(si), dtype=np.float32).T
+
+
+def textures_at_hits(mi, views: TestViews, uvs: list[np.ndarray], base_color: np.ndarray, roughness: np.ndarray
+                     ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Albedo and roughness images of every test view: the textures at the hits' UVs."""
+    return ([scatter(h, texture_at(mi, base_color, uv)) for h, uv in zip(views.hits, uvs)],
+            [scatter(h, texture_at(mi, roughness, uv)) for h, uv in zip(views.hits, uvs)])
 
 
 # ---------------------------------------------------------------- the optimisation
@@ -164,7 +187,7 @@ class MitsubaPeer:
     ROUGH = "object.bsdf.roughness.data"
     ENV = "env.data"
 
-    def __init__(self, mesh: MeshData, rig: CameraRig, images: list[np.ndarray], cfg: PeerConfig) -> None:
+    def __init__(self, mesh: TriMesh, rig: CameraRig, images: list[np.ndarray], cfg: PeerConfig) -> None:
         cfg.validate()
         mi, dr = import_mitsuba()
         dr.set_thread_count(cfg.threads)
@@ -172,10 +195,9 @@ class MitsubaPeer:
         S, He = cfg.texture_size, cfg.env_height
         We = 2 * He
         env0 = np.full((He, We, 3), self.initial_radiance(images, cfg.albedo_init), np.float32)
-        bsdf = mi.load_dict(principled(mi, _bitmap_texture(mi, np.full((S, S, 3), cfg.albedo_init, np.float32)),
-                                       _bitmap_texture(mi, np.full((S, S), cfg.roughness_init, np.float32))))
-        a = mesh.atlas
-        obj = build_mesh(mi, mesh.vertices[a.source], a.faces, mesh.normals[a.source], a.uv, bsdf)
+        bsdf = mi.load_dict(principled(mi, bitmap_texture(mi, np.full((S, S, 3), cfg.albedo_init, np.float32)),
+                                       bitmap_texture(mi, np.full((S, S), cfg.roughness_init, np.float32))))
+        obj = build_mesh(mi, mesh.vertices, mesh.faces, mesh.normals, mesh.uv, bsdf)
         self.scene = mi.load_dict({"type": "scene", "object": obj, "env": envmap_emitter(mi, env0)})
         self.sensors = [_sensor(mi, c, rig.fov_x_deg, rig.width, rig.height) for c in rig.c2w_gl]
         self.refs = [mi.TensorXf(img) for img in images]

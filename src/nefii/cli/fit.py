@@ -7,22 +7,17 @@ import resource
 import time
 from pathlib import Path
 
-import torch
 
-from ..data import load_scene
 from ..errors import InputError
-from ..fit.build import build_model
 from ..fit.config import PRESETS, FitConfig, resolve_config
-from ..fit.geometry_source import adapt_to_source, resolve_source
 from ..fit.distributed import DistContext, init_distributed, local_device, parameter_checksums, shutdown
-from ..fit.light_init import estimate_light, set_sg_parameters, sg_from_light
 from ..fit.logging import RunLogger
 from ..fit.outputs import read_config, write_config, write_outputs
-from ..fit.pixels import first_hits
 from ..fit.preview import write_preview
-from ..fit.trainer import NonFiniteLoss, Trainer
-from ..geometry import MeshGeometry
+from ..fit.session import prepare_fit
+from ..fit.trainer import NonFiniteLoss
 from ..io.atomic import write_text_atomic
+from ..io.checkpoints import latest_checkpoint
 from .common import pick_device, set_threads
 
 
@@ -72,41 +67,15 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
     device = local_device(pick_device(args.device), ctx)
     threads = set_threads(cfg.threads)
     say = print if ctx.is_main else (lambda *a, **k: None)
-    scene = load_scene(args.data, "train")
-    source = resolve_source(args.mesh, args.geometry, scene.mesh_path, cfg.geometry_mode, args.data)
-    cfg, source = adapt_to_source(cfg, source)
-    geometry, features = source.open()
-    box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
-    what = f"mesh {source.mesh} ({len(geometry.faces)} triangles)" if isinstance(geometry, MeshGeometry) else \
-        f"SDF of {source.folder}, sphere-traced, feature vector of {features.dim if features else 0}"
-    if source.folder is not None:
-        what += (f" (a reconstruction: material offset {cfg.material_offset:g}, normals smoothed to "
-                 f"{source.normal_sigma:g} of the diagonal, the lookup's to {source.lookup_sigma:g}"
-                 + (f", offset scaled to walls thinner than {source.lookup_separation:g}" if source.lookup_separation
-                    else "") + ")")
-    say(f"nefii fit: {len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
-        f"{what}; device {device}, {threads} threads"
-        + (f", {ctx.world_size} processes" if ctx.active else ""))
-    pixels = first_hits(scene, geometry).to(device)
-    say(f"nefii fit: {len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels")
-
-    model = build_model(cfg, box, features)
-    if not args.resume and cfg.light.kind == "sg" and cfg.light.init == "shading":
-        pts = pixels.points
-        est = estimate_light(pts.position, pts.normal, pts.geometric_normal, pixels.rgb, geometry,
-                             generator=torch.Generator().manual_seed(cfg.seed), ray_offset=cfg.ray_offset)
-        init = sg_from_light(est, cfg.light.num_lobes, sharp=cfg.light.sharpness_init_peak)
-        set_sg_parameters(model.env, init)
-        n_sharp = int((init.sharpness == cfg.light.sharpness_init_peak).sum())
-        say(f"nefii fit: lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
-    trainer = Trainer(cfg, model, geometry, pixels, device, ctx)
-    ckpt_dir = out / "checkpoints"
+    checkpoint = None
     if args.resume:
-        last = Trainer.latest_checkpoint(ckpt_dir)
-        if last is None:
-            raise InputError(ckpt_dir, "no checkpoint to resume from")
-        trainer.load_state_dict(torch.load(last, map_location=device, weights_only=False))
-        say(f"nefii fit: resumed from {last} at step {trainer.step}")
+        checkpoint = latest_checkpoint(out / "checkpoints")
+        if checkpoint is None:
+            raise InputError(out / "checkpoints", "no checkpoint to resume from")
+    say(f"nefii fit: device {device}, {threads} threads" + (f", {ctx.world_size} processes" if ctx.active else ""))
+    session = prepare_fit(cfg, args.data, mesh=args.mesh, geometry_dir=args.geometry, device=device, dist=ctx,
+                          checkpoint=checkpoint, say=lambda line: say(f"nefii fit: {line}"))
+    cfg, trainer, ckpt_dir = session.config, session.trainer, out / "checkpoints"
     logger = None
     if ctx.is_main:
         out.mkdir(parents=True, exist_ok=True)
@@ -116,8 +85,8 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
     t0, step0 = time.time(), trainer.step
 
     def preview(step: int) -> None:
-        write_preview(out / "previews" / f"step_{step:07d}.png", trainer.model, geometry, scene,
-                      view=(step // max(cfg.preview_every, 1)) % len(scene), transport=trainer.transport)
+        write_preview(out / "previews" / f"step_{step:07d}.png", trainer.model, session.geometry, session.scene,
+                      view=(step // max(cfg.preview_every, 1)) % len(session.scene), transport=trainer.transport)
 
     try:
         trainer.fit(ckpt_dir, log=logger, progress=not args.quiet, preview=preview)
@@ -134,7 +103,7 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
             return 1
         say(f"nefii fit: the {ctx.world_size} process replicas are in sync (parameter sum {sums[0]:.6g})")
     if ctx.is_main:
-        write_outputs(out, cfg, trainer.model, box, Path(args.data).resolve(), source)
+        write_outputs(out, cfg, trainer.model, session.box, Path(args.data).resolve(), session.source)
         wall = time.time() - t0
         stats = {"steps": trainer.step, "steps_this_session": trainer.step - step0, "wall_s_this_session": wall,
                  "steps_per_s": (trainer.step - step0) / max(wall, 1e-9), "processes": ctx.world_size,

@@ -24,11 +24,13 @@ from ..data import load_scene
 from ..data.scene import Relit
 from ..errors import InputError
 from ..evaluate.report import write_grid
+from ..fit.model import decode_material
 from ..fit.outputs import load_run
 from ..io.atomic import atomic_dir, write_text_atomic
 from ..io.exr import write_exr
 from ..io.images import write_png
 from ..relight.environment import load_environment
+from ..render.brdf import Material
 from ..relight.pathtracer import PathSettings
 from ..relight.render import render_relit
 from ..relight.report import (PROTOCOL, albedo_scale_from_eval, albedo_scale_from_ground_truth, merge_metrics,
@@ -107,7 +109,11 @@ def run(args: argparse.Namespace) -> int:
         _check_same_map(gt, env.image)
 
     # ---- the albedo scale
-    material = fitted.model.material
+    model = fitted.model
+
+    def material(x: torch.Tensor, lookup_normal: torch.Tensor) -> Material:
+        return decode_material(model, x, lookup_normal)
+
     scale, source = None, "none (--albedo-scale none)"
     if args.albedo_scale == "auto":
         scale = albedo_scale_from_eval(args.run)
@@ -121,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     stated = [float(s) for s in (np.ones(3) if scale is None else scale)]
 
     # ---- render every view
-    settings = PathSettings(max_bounces=args.max_bounces)
+    settings = PathSettings(max_bounces=args.max_bounces, ray_offset=fitted.config.ray_offset)
     out_root = args.out or args.run / "relight"
     g = torch.Generator(device=device).manual_seed(args.seed)
     cams = views.cameras

@@ -10,7 +10,8 @@ from torch import Tensor
 
 from ..camera import pixel_rays
 from ..data.scene import Cameras
-from ..fit.model import NeFIIModel, SurfacePoints, Transport, path_trace
+from ..fit.model import NeFIIModel, decode_material
+from ..fit.path_trace import SurfacePoints, Transport, path_trace
 from ..geometry.base import Geometry, Rays
 
 
@@ -34,8 +35,8 @@ class ViewPrediction:
 
 @torch.no_grad()
 def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: int, num_samples: int,
-                generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 2048,
-                ray_offset: float = 1e-4) -> ViewPrediction:
+                generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 2048
+                ) -> ViewPrediction:
     H, W = cameras.height, cameras.width
     device = next(model.parameters()).device
     o, d = pixel_rays(cameras.c2w[view].cpu(), cameras.K[view].cpu(), H, W)
@@ -48,12 +49,13 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
     rough = torch.zeros(n_px, device=device)
     for c in idx.split(chunk):
         pts = SurfacePoints.from_hit(hit, c, -d[c])
-        traced = path_trace(model, geometry, pts, num_samples, generator, transport, ray_offset=ray_offset)
+        material = decode_material(model, pts.position, pts.lookup_normal)
+        traced = path_trace(model, geometry, pts, material, num_samples, generator, transport)
         rgb[c] = traced.radiance.rgb
         out["specular"][c] = traced.radiance.specular
         out["diffuse"][c] = traced.radiance.diffuse
-        out["albedo"][c] = traced.material.albedo
-        rough[c] = traced.material.roughness
+        out["albedo"][c] = material.albedo
+        rough[c] = material.roughness
         out["normal"][c] = pts.normal
         out["cache"][c] = model.cache(pts.position, pts.normal, pts.wo)
     shape3 = (H, W, 3)

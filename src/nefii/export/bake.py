@@ -5,8 +5,9 @@
    the ring of texels just outside a chart holds the surface value at the chart's edge, which
    bilinear filtering at the seam reads.
 2. The 3D point of each covered texel is the same barycentric combination of the triangle's
-   corners; the material is decoded there by ``nefii.fit.outputs.material_at``, the decode
-   render, eval and relight use.
+   corners; the material is decoded there by ``nefii.fit.model.decode_material`` (chunked, by
+   ``material_at``), the decode the fit, eval and relight use, along the lookup normal interpolated as
+   the ray caster interpolates it.
 3. ``push_pull``: the empty texels between charts are filled from a pyramid of masked means, so
    mip levels and wide filters never pull in black.
 """
@@ -19,9 +20,8 @@ import numpy as np
 import torch
 from jaxtyping import Bool, Float, Int
 
-from ..fit.model import NeFIIModel
-from ..fit.outputs import material_at
-from ..geometry.mesh import interpolate_offsets
+from ..fit.model import NeFIIModel, material_at
+from ..geometry.mesh import interpolate_normals
 from .unwrap import UVAtlas
 
 _CANDIDATES_PER_CHUNK = 1 << 21
@@ -166,8 +166,8 @@ def bake_textures(model: NeFIIModel, vertices: Float[np.ndarray, "V 3"], normals
                   atlas: UVAtlas, progress: Callable[[int, int], None] | None = None) -> BakedTextures:
     """Albedo and roughness textures of ``model`` over ``atlas`` (``vertices`` and unit vertex ``normals``
     are the atlas's, in world space; ``normals`` are the material lookup's, the ray caster's
-    ``lookup_normal`` (unit, or scaled per vertex), and a texel's is interpolated as the ray caster
-    interpolates them, by :func:`interpolate_offsets`).
+    ``lookup_normal``, and a texel's is interpolated as the ray caster interpolates them, by
+    :func:`interpolate_normals`).
 
     ``progress(n, total)`` is told after each chunk of ``n`` of the ``total`` texels is decoded.
     """
@@ -176,7 +176,7 @@ def bake_textures(model: NeFIIModel, vertices: Float[np.ndarray, "V 3"], normals
     tri = atlas.faces[texels.triangle]                                                 # (N, 3)
     corners = np.asarray(vertices, dtype=np.float64)[tri]                              # (N, 3, 3)
     points = torch.from_numpy((texels.bary[..., None] * corners).sum(1)).float()
-    nrm = interpolate_offsets(torch.from_numpy(np.asarray(normals, dtype=np.float64)[tri]),
+    nrm = interpolate_normals(torch.from_numpy(np.asarray(normals, dtype=np.float64)[tri]),
                               torch.from_numpy(np.asarray(texels.bary, dtype=np.float64)))
     total = len(points)
     mat = material_at(model, points, nrm.float(),

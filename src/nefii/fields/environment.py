@@ -39,6 +39,10 @@ class SGEnvironment(nn.Module):
         mu = init_radiance * 4 * math.pi / (num_lobes * integral)
         self.log_amplitude = nn.Parameter(mu.log().unsqueeze(-1).repeat(1, 3))
 
+    def shape_parameters(self) -> list[nn.Parameter]:
+        """The lobes' axes and log-sharpness (the optimiser moves them more slowly than the amplitudes)."""
+        return [self.axis_raw, self.log_sharpness]
+
     def forward(self) -> SGMixture:
         return SGMixture(axis=normalize(self.axis_raw), sharpness=self.log_sharpness.exp(),
                          amplitude=self.log_amplitude.exp())
@@ -62,6 +66,10 @@ class EnvmapEnvironment(nn.Module):
     def __init__(self, height: int = 32, width: int = 64, init_radiance: float = 0.5) -> None:
         super().__init__()
         self.log_radiance = nn.Parameter(torch.full((height, width, 3), math.log(init_radiance)))
+
+    def shape_parameters(self) -> list[nn.Parameter]:
+        """None: a grid has only radiance."""
+        return []
 
     def image(self) -> Float[Tensor, "H W 3"]:
         return self.log_radiance.exp()

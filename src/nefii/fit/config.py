@@ -106,15 +106,15 @@ class FitConfig:
     tonemap: str = "log1p"
     """colour space of the losses: ``none`` (linear, as Eq. 7) or ``log1p`` (keeps highlights from dominating)"""
     smooth_albedo: float = 0.005
-    """weight of an L1 prior between the albedo at a point and at a jittered neighbour (0: off, as the paper)"""
-    smooth_roughness: float = 0.0
-    """the same for roughness (after the warm-up)"""
+    """weight of an L1 prior between the albedo at a point and at a jittered neighbour (0: off, as the paper):
+    keeps the hash grid from memorising Monte Carlo noise"""
     smooth_radius: float = 0.01
     """jitter of the smoothness prior, as a fraction of the scene's bounding-box diagonal"""
     secondary_buffer: int = 65536
     """secondary hits kept for the unobserved step"""
     ray_offset: float = 1e-4
-    """secondary-ray origin offset, as a fraction of the scene's bounding-box diagonal"""
+    """secondary-ray origin offset, as a fraction of the scene's bounding-box diagonal (training, eval and the
+    light initialisation)"""
     seed: int = 0
     """seeds parameters, pixel batches and direction samples"""
     geometry_mode: str = "mesh"
@@ -127,9 +127,8 @@ class FitConfig:
     diagonal: the faces of a thin wall then do not share the encoding's coarse cells (0: encode x, the paper)"""
     material_offset_reconstructed: float = 0.0
     """``material_offset`` used instead when the geometry is a reconstruction (``--geometry GEO``, the output of
-    ``nefii geometry``): its normals are some degrees off and uneven, and the offset turns a normal error e
-    into a lateral error ``offset * sin(e)`` of the material lookup that wanders over the surface (a texel
-    or more at 0.04), which blurs the texture more than the shared cells cost (see docs/design.md)"""
+    ``nefii geometry``), whose normals are less exact: an offset turns a normal error e into a lateral error
+    ``offset * sin(e)`` of the lookup"""
     normal_smoothing_reconstructed: float = 0.0
     """with ``--geometry GEO`` in ``mesh`` mode: the mesh's vertex normals are smoothed along its edges to this
     lateral scale (a fraction of the bounding-box diagonal; 0: none), against the reconstruction's bumps"""
@@ -137,12 +136,6 @@ class FitConfig:
     """with ``--geometry GEO`` in ``mesh`` mode: the material lookup ``x + offset * n`` takes n from the mesh's
     vertex normals smoothed to this lateral scale (a fraction of the diagonal; 0: the shading normals), so the
     offset only says which side of a wall a point is on and does not carry the reconstruction's normal noise"""
-    offset_by_thickness_reconstructed: bool = False
-    """with ``--geometry GEO`` in ``mesh`` mode: the offset at each vertex is scaled to the wall it lies on (its
-    thickness t along the lookup normal, ray-cast inwards), ``offset * clip(1 - t / (2 offset), 0, 1)``, so the
-    two faces of a thin wall are encoded ``max(t, 2 offset)`` apart and parts thicker than twice the offset
-    keep the exact lookup (no folding, no wandering where nothing needs separating). Off in every preset: at 0.04
-    it did no better than the ``cpu`` preset on the built-in reconstructions (docs/design.md, geometry step 7)"""
     cache: NetworkConfig = field(default_factory=NetworkConfig)
     """radiance cache L"""
     cache_dir_freqs: int = 4
@@ -177,16 +170,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         "normal_smoothing_reconstructed": 0.005,
     },
 }
-"""``cpu``: designed for 2 CPU cores; ``paper``: the paper's sizes, for a GPU; ``tiny``: tests.
-``material_offset`` 0.04 in ``cpu``: albedo PSNR bowl 22.7 -> 27.4 dB (a wall 2.6% of the diagonal thick),
-corner +1.8, cup -0.3, leaning -1.3 dB (docs/design.md, fit step 9); ``paper`` keeps the paper's M(x, f).
-``material_offset_reconstructed`` 0.01 in ``cpu``: on the geometry stage's meshes, offset 0 / 0.01 / 0.04 gave
-albedo PSNR bowl 23.2 / 24.9 / 25.7, leaning 21.9 / 21.6 / 21.1, cup 22.3 / 21.9 / 21.4, corner 22.2 / 22.3 / 21.9
-dB; with the normals smoothed to 0.005 of the diagonal (``normal_smoothing_reconstructed``) 0.01 gave 24.8 / 21.8 /
-22.2 / 22.6 dB. 0.04 with the lookup's normals smoothed to 0.04 (``lookup_smoothing_reconstructed``) in ``cpu``: on
-two rebuilds of the geometry it gave 26.1 / 21.6 / 21.1 / 22.6 and 26.25 / 21.50 / 21.15 / 22.55 dB against 0.01's
-24.47 / 21.54 / 21.70 / 22.64 on the second (bowl with seed 1: 25.49 against 23.94), 3 of 4 within 1.5 dB of the
-ground-truth-geometry fits against 2 (docs/design.md, geometry stage step 7)."""
+"""``cpu``: designed for 2 CPU cores (hash grids, small MLPs, N = 8; the side-aware material offset, and on a
+reconstruction the lookup's normals smoothed so the offset does not carry its normal noise); ``paper``: the
+paper's networks and sample counts, for a GPU; ``tiny``: tests. What each choice measured is logged in
+docs/experiments.md."""
 
 
 def config_from_dict(values: dict[str, Any]) -> FitConfig:

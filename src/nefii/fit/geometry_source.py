@@ -29,21 +29,15 @@ class GeometrySource:
     lookup_sigma: float = 0.0
     """``mesh`` mode: the material lookup's normals (:attr:`SurfaceHit.lookup_normal`) smoothed to this scale
     (0: the shading normals)"""
-    lookup_separation: float = 0.0
-    """``mesh`` mode: > 0 scales the lookup normals by the walls' thickness so that the material offset
-    encodes a wall's faces at least this far apart (a fraction of the diagonal, twice the offset; 0: unscaled);
-    see :meth:`MeshGeometry.from_file`"""
 
     def to_dict(self) -> dict:
         return {"mode": self.mode, "mesh": str(self.mesh), "folder": None if self.folder is None else str(self.folder),
-                "normal_sigma": self.normal_sigma, "lookup_sigma": self.lookup_sigma,
-                "lookup_separation": self.lookup_separation}
+                "normal_sigma": self.normal_sigma, "lookup_sigma": self.lookup_sigma}
 
     @staticmethod
     def from_dict(d: dict) -> "GeometrySource":
         return GeometrySource(d["mode"], Path(d["mesh"]), None if d.get("folder") is None else Path(d["folder"]),
-                              float(d.get("normal_sigma", 0.0)), float(d.get("lookup_sigma", 0.0)),
-                              float(d.get("lookup_separation", 0.0)))
+                              float(d.get("normal_sigma", 0.0)), float(d.get("lookup_sigma", 0.0)))
 
     def open(self) -> tuple[Geometry, FeatureField | None]:
         """The geometry to cast rays against and, in ``sdf`` mode, the feature field for the fields."""
@@ -60,7 +54,7 @@ class GeometrySource:
         """The triangle mesh with the vertex normals the fit used (what ``mesh`` mode casts, and what export
         and view bake in either mode)."""
         return MeshGeometry.from_file(self.mesh, normal_sigma=self.normal_sigma, lookup_sigma=self.lookup_sigma,
-                                      lookup_separation=self.lookup_separation, threads=threads)
+                                      threads=threads)
 
 
 def resolve_source(mesh: Path | None, geometry: Path | None, scene_mesh: Path | None, mode: str,
@@ -87,13 +81,10 @@ def adapt_to_source(cfg: FitConfig, source: GeometrySource) -> tuple[FitConfig, 
     """``cfg`` and ``source`` as they apply to this geometry: a reconstruction (the folder of ``nefii
     geometry``) takes ``material_offset_reconstructed`` as its material offset and, in ``mesh`` mode, its
     vertex normals smoothed by ``normal_smoothing_reconstructed``, the material lookup's by
-    ``lookup_smoothing_reconstructed`` and, with ``offset_by_thickness_reconstructed``, scaled to the walls'
-    thickness; a given mesh keeps all as they are."""
+    ``lookup_smoothing_reconstructed``; a given mesh keeps all as they are."""
     if source.folder is None:
         return cfg, source
     mesh_mode = source.mode == "mesh"
-    by_thickness = mesh_mode and cfg.offset_by_thickness_reconstructed and cfg.material_offset_reconstructed > 0
     return (dataclasses.replace(cfg, material_offset=cfg.material_offset_reconstructed),
             dataclasses.replace(source, normal_sigma=cfg.normal_smoothing_reconstructed if mesh_mode else 0.0,
-                                lookup_sigma=cfg.lookup_smoothing_reconstructed if mesh_mode else 0.0,
-                                lookup_separation=2.0 * cfg.material_offset_reconstructed if by_thickness else 0.0))
+                                lookup_sigma=cfg.lookup_smoothing_reconstructed if mesh_mode else 0.0))

@@ -1,4 +1,5 @@
-"""The two losses NeFII alternates between (paper Eq. 7 and Eq. 8)."""
+"""The two losses NeFII alternates between (paper Eq. 7 and Eq. 8), as pure functions of what the
+estimator returned, and the ring buffer of secondary hits that Eq. 8 draws from."""
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
@@ -6,9 +7,9 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
-from ..geometry.base import Geometry
-from .model import NeFIIModel, PathTraced, SurfacePoints, Transport, path_trace
-from .pixels import Pixels
+from jaxtyping import Float
+
+from .path_trace import PathTraced, SurfacePoints
 
 
 def tonemap(x: Tensor, kind: str) -> Tensor:
@@ -70,73 +71,64 @@ def render_distance(traced: PathTraced, target: Tensor, tone: str, kind: str) ->
 class LossTerms:
     total: Tensor
     render: Tensor
-    """L1 of the path-traced colour (Eq. 7, first term; Eq. 8 for the unobserved step)"""
+    """distance of the path-traced colour (Eq. 7, first term; Eq. 8 for the unobserved step)"""
     cache: Tensor
-    """L1 of the cache's own colour L(x, n, wo) (Eq. 7, second term)"""
+    """distance of the cache's own colour L(x, n, wo) (Eq. 7, second term)"""
     background: Tensor
     """L2 of the environment seen by background pixels (Eq. 7, third term)"""
     smooth: Tensor | None = None
-    """material smoothness prior (not in the paper; 0 weight turns it off)"""
+    """albedo smoothness prior (not in the paper; None when off)"""
 
 
 @dataclass(frozen=True)
 class SmoothnessPrior:
-    """``albedo |a(x) - a(x + d)|_1 + roughness |r(x) - r(x + d)|_1``, ``d ~ N(0, radius^2)`` per axis of the
-    tangent plane at ``x``: smoothness along the surface, never through a thin wall to its other face."""
+    """``weight |a(x) - a(x + d)|_1``, ``d ~ N(0, radius^2)`` per axis of the tangent plane at ``x``: albedo
+    smoothness along the surface, never through a thin wall to its other face."""
 
-    albedo: float = 0.0
-    roughness: float = 0.0
+    weight: float = 0.0
     radius: float = 0.01
     """in world units"""
 
     @property
     def active(self) -> bool:
-        return self.albedo > 0 or self.roughness > 0
+        return self.weight > 0
+
+    def neighbours(self, position: Float[Tensor, "B 3"], normal: Float[Tensor, "B 3"],
+                   generator: torch.Generator | None) -> Float[Tensor, "B 3"]:
+        """A random step from each point along the tangent plane of its unit shading normal."""
+        d = torch.randn(position.shape, generator=generator, device=position.device, dtype=position.dtype) \
+            * self.radius
+        d = d - (d * normal).sum(-1, keepdim=True) * normal                  # in the tangent plane
+        return position + d
 
 
-def smoothness(model: NeFIIModel, pts: SurfacePoints, material, prior: SmoothnessPrior,
-               roughness_override: float | None, generator: torch.Generator | None) -> Tensor:
-    """L1 between the material at ``pts`` and at a neighbour a random step along the tangent plane (of the
-    unit shading normal), read along the same lookup normal."""
-    x, n = pts.position, pts.normal
-    d = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype) * prior.radius
-    d = d - (d * n).sum(-1, keepdim=True) * n                                 # in the tangent plane
-    other = model.material(x + d, pts.lookup_normal, roughness_override=roughness_override)
-    loss = prior.albedo * (material.albedo - other.albedo).abs().mean()
-    if roughness_override is None:
-        loss = loss + prior.roughness * (material.roughness - other.roughness).abs().mean()
-    return loss
+def smoothness(albedo: Float[Tensor, "B 3"], neighbour_albedo: Float[Tensor, "B 3"], weight: float) -> Tensor:
+    """The prior's value from the albedo at the points and at their neighbours."""
+    return weight * (albedo - neighbour_albedo).abs().mean()
 
 
-def observed_loss(model: NeFIIModel, geometry: Geometry, batch: Pixels, num_samples: int,
-                  generator: torch.Generator | None, transport: Transport, roughness_override: float | None,
-                  beta1: float = 1.0, beta2: float = 1.0, tone: str = "none",
-                  prior: SmoothnessPrior = SmoothnessPrior(), kind: str = "l1") -> tuple[LossTerms, PathTraced]:
-    """Eq. 7: ``|c_pt - c|_1 + beta1 |L(x,n,wo) - c|_1 + beta2 |E(d_bg) - c_bg|_2^2`` (+ the optional prior)."""
-    pts = batch.points
-    traced = path_trace(model, geometry, pts, num_samples, generator, transport, roughness_override)
-    gt = tonemap(batch.rgb, tone)
-    l_render = render_distance(traced, batch.rgb, tone, kind)
-    l_cache = distance(tonemap(model.cache(pts.position, pts.normal, pts.wo), tone), gt, kind)
-    if len(batch.bg_dirs):
-        l_bg = (tonemap(model.env.radiance(batch.bg_dirs), tone) - tonemap(batch.bg_rgb, tone)).square().mean()
+def observed_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], target: Float[Tensor, "B 3"],
+                  env_bg: Float[Tensor, "G 3"], target_bg: Float[Tensor, "G 3"], tone: str, kind: str,
+                  beta1: float = 1.0, beta2: float = 1.0, smooth: Tensor | None = None) -> LossTerms:
+    """Eq. 7: ``d(c_pt, c) + beta1 d(L(x,n,wo), c) + beta2 |E(d_bg) - c_bg|_2^2`` (+ the prior's value).
+
+    ``cache_rgb`` is the cache's own colour at the pixels' points, ``env_bg`` the environment along the
+    background pixels' directions (``G`` may be 0)."""
+    l_render = render_distance(traced, target, tone, kind)
+    l_cache = distance(tonemap(cache_rgb, tone), tonemap(target, tone), kind)
+    if len(env_bg):
+        l_bg = (tonemap(env_bg, tone) - tonemap(target_bg, tone)).square().mean()
     else:
         l_bg = l_render.new_zeros(())
     total = l_render + beta1 * l_cache + beta2 * l_bg
-    l_smooth = None
-    if prior.active:
-        l_smooth = smoothness(model, pts, traced.material, prior, roughness_override, generator)
-        total = total + l_smooth
-    return LossTerms(total, l_render, l_cache, l_bg, l_smooth), traced
+    if smooth is not None:
+        total = total + smooth
+    return LossTerms(total, l_render, l_cache, l_bg, smooth)
 
 
-def unobserved_loss(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_samples: int,
-                    generator: torch.Generator | None, transport: Transport, roughness_override: float | None,
-                    tone: str = "none", kind: str = "l1") -> LossTerms:
-    """Eq. 8: L1 between path tracing at secondary hits and the cache there; neither side detached."""
-    traced = path_trace(model, geometry, pts, num_samples, generator, transport, roughness_override)
-    cached = model.cache(pts.position, pts.normal, pts.wo)
-    l = render_distance(traced, cached, tone, kind)
+def unobserved_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], tone: str, kind: str) -> LossTerms:
+    """Eq. 8: the distance between path tracing at secondary hits and the cache there; neither side detached."""
+    l = render_distance(traced, cache_rgb, tone, kind)
     zero = l.new_zeros(())
     return LossTerms(l, l, zero, zero)
 

@@ -1,14 +1,13 @@
-"""The thin model that wires the fields to the rendering math (paper Sec. 3.2, Fig. 2).
+"""The thin model: the learned fields (paper Sec. 3.2, Fig. 2), their parameter groups, and the one
+decode of the material at surface points.
 
-``path_trace`` is Eq. 2-4 for a batch of surface points: material from M at x, N estimator
-samples by MIS, one secondary ray per direction, ``V E(w)`` where it escapes and the cache
-``L(x', n', -w)`` where it hits. The secondary hits are returned too: they are the unobserved
-rays of Eq. 8.
+``decode_material`` is the only way the recovered material is read: the fit, eval, relight,
+export's bake and the benchmarks all call it, so they read the same albedo and roughness at a
+surface point (the field's lookup ``x + offset * n`` takes the hit's ``lookup_normal``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-from typing import Callable
+from typing import Any
 
 import torch
 from jaxtyping import Float
@@ -17,109 +16,53 @@ from torch import Tensor, nn
 from ..fields.cache import RadianceCache
 from ..fields.environment import EnvmapEnvironment, SGEnvironment
 from ..fields.material import MaterialField
-from ..geometry.base import Geometry, Rays, SurfaceHit, spawn_rays
 from ..render.brdf import Material
-from ..render.estimator import (DirectionSamples, RadianceEstimate, combine, combine_pair, mean_of_pair,
-                                sample_mis_directions)
 
 
 class NeFIIModel(nn.Module):
-    """Material field M, radiance cache L and SG environment E: everything that is learned."""
+    """Material field M, radiance cache L and environment E: everything that is learned."""
 
     def __init__(self, material: MaterialField, cache: RadianceCache, env: SGEnvironment | EnvmapEnvironment) -> None:
         super().__init__()
         self.material, self.cache, self.env = material, cache, env
 
-
-@dataclass(frozen=True)
-class SurfacePoints:
-    """Points on the frozen surface seen along ``wo`` (first hits, or secondary hits reused)."""
-
-    position: Float[Tensor, "B 3"]
-    normal: Float[Tensor, "B 3"]
-    """unit shading normal"""
-    geometric_normal: Float[Tensor, "B 3"]
-    wo: Float[Tensor, "B 3"]
-    """unit direction towards the viewer"""
-    lookup_normal: Float[Tensor, "B 3"]
-    """normal along which the material lookup is offset (:attr:`SurfaceHit.lookup_normal`): unit, or scaled to
-    the share of the offset the point takes"""
-
-    @staticmethod
-    def from_hit(hit: SurfaceHit, select: Tensor, wo: Float[Tensor, "B 3"]) -> "SurfacePoints":
-        """The hits ``hit[select]`` (an index or mask over the rays) seen along ``wo`` (one per selected hit)."""
-        return SurfacePoints(hit.position[select], hit.normal[select], hit.geometric_normal[select], wo,
-                             hit.lookup_normal[select])
-
-    def map(self, fn: Callable[[Tensor], Tensor]) -> "SurfacePoints":
-        """``fn`` applied to every field (indexing, detaching, moving, ...)."""
-        return SurfacePoints(*(fn(getattr(self, f.name)) for f in fields(SurfacePoints)))
-
-    def __getitem__(self, idx: Tensor | slice) -> "SurfacePoints":
-        return self.map(lambda t: t[idx])
-
-    @staticmethod
-    def cat(items: list["SurfacePoints"]) -> "SurfacePoints":
-        return SurfacePoints(*(torch.cat([getattr(p, f.name) for p in items]) for f in fields(SurfacePoints)))
-
-    def __len__(self) -> int:
-        return self.position.shape[0]
+    def param_groups(self, lr: float, lr_light: float, lr_light_shape: float) -> list[dict[str, Any]]:
+        """Optimiser groups: the networks at ``lr``, the light's radiance at ``lr_light``, the SG lobes'
+        axes and sharpness (if any) at ``lr_light_shape``. Frozen parameters (a frozen SDF's) are left out."""
+        shape = [p for p in self.env.shape_parameters() if p.requires_grad]
+        shape_ids = {id(p) for p in shape}
+        light = [p for p in self.env.parameters() if p.requires_grad and id(p) not in shape_ids]
+        env_ids = {id(p) for p in self.env.parameters()}
+        nets = [p for p in self.parameters() if p.requires_grad and id(p) not in env_ids]
+        groups = [{"params": nets, "lr": lr}, {"params": light, "lr": lr_light}]
+        if shape:
+            groups.append({"params": shape, "lr": lr_light_shape})
+        return [g for g in groups if g["params"]]
 
 
-@dataclass(frozen=True)
-class Transport:
-    """Which light paths the estimator follows (the ablation switches of Sec. 4.3)."""
-
-    indirect: bool = True
-    """secondary rays that hit the object see the radiance cache; off: they see black"""
-    visibility: bool = True
-    """off: every direction sees the environment, as if nothing occluded it (PhySG-style)"""
-
-
-@dataclass(frozen=True)
-class PathTraced:
-    radiance: RadianceEstimate
-    """the estimate from all N estimator samples"""
-    pair: tuple[RadianceEstimate, RadianceEstimate] | None
-    """two independent estimates from either half of the samples (None when N < 2)"""
-    material: Material
-    secondary: SurfacePoints
-    """secondary hits ``(x', n', -w)``: where the cache was queried"""
+def decode_material(model: NeFIIModel, position: Float[Tensor, "B 3"], lookup_normal: Float[Tensor, "B 3"],
+                    roughness_override: float | None = None) -> Material:
+    """The material at surface points ``position`` whose lookup normal (:attr:`SurfaceHit.lookup_normal`) is
+    ``lookup_normal``: albedo ``(B, 3)`` linear in [0, 1], roughness ``(B,)``; ``roughness_override`` (the
+    warm-up's constant) replaces the learned roughness. Differentiable; see :func:`material_at` for a
+    chunked decode without gradient."""
+    return model.material(position, lookup_normal, roughness_override=roughness_override)
 
 
-def _estimate(samples: DirectionSamples, material: Material, n: Tensor, L_i: Tensor
-              ) -> tuple[RadianceEstimate, tuple[RadianceEstimate, RadianceEstimate] | None]:
-    N = samples.num_estimator_samples
-    if N < 2:
-        return combine(samples, material, n, L_i), None
-    pair = combine_pair(samples, material, n, L_i)
-    return mean_of_pair(pair, N), pair
-
-
-def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, num_samples: int,
-               generator: torch.Generator | None, transport: Transport = Transport(),
-               roughness_override: float | None = None, ray_offset: float = 1e-4) -> PathTraced:
-    """Eq. 2-4 at ``pts``: the path-traced colour, the material there, and the secondary hits."""
-    material = model.material(pts.position, pts.lookup_normal, roughness_override=roughness_override)
-    samples = sample_mis_directions(pts.normal, pts.wo, material.roughness.detach(), model.env.light_sampler(),
-                                    num_samples, generator)
-    wi = samples.wi                                                            # (B, S, 3)
-    # only directions that carry weight are traced and lit
-    b_idx, s_idx = (samples.weight > 0).nonzero(as_tuple=True)
-    w_live = wi[b_idx, s_idx]
-    if not transport.visibility:
-        L_i = wi.new_zeros(wi.shape).index_put((b_idx, s_idx), model.env.radiance(w_live))
-        no_hits = SurfacePoints(*(wi.new_zeros(0, 3) for _ in fields(SurfacePoints)))
-        return PathTraced(*_estimate(samples, material, pts.normal, L_i), material, no_hits)
-
-    # ---- secondary rays
-    rays = spawn_rays(pts.position[b_idx], pts.geometric_normal[b_idx], w_live, ray_offset * geometry.scale)
-    hit = geometry.intersect(Rays(rays.origins, rays.directions))
-    secondary = SurfacePoints.from_hit(hit, hit.valid, -w_live[hit.valid])
-    # ---- incoming light: V E(w) + (1 - V) L(x', n', -w)
-    miss = ~hit.valid
-    L_i = wi.new_zeros(wi.shape).index_put((b_idx[miss], s_idx[miss]), model.env.radiance(w_live[miss]))
-    if transport.indirect and len(secondary):
-        L_hit = model.cache(secondary.position, secondary.normal, secondary.wo)
-        L_i = L_i.index_put((b_idx[hit.valid], s_idx[hit.valid]), L_hit)
-    return PathTraced(*_estimate(samples, material, pts.normal, L_i), material, secondary)
+@torch.no_grad()
+def material_at(model: NeFIIModel, position: Float[Tensor, "N 3"], lookup_normal: Float[Tensor, "N 3"],
+                chunk: int = 65536, progress=None) -> Material:
+    """:func:`decode_material` over many points in chunks, without gradient, on the model's device.
+    ``progress(n)`` is called with the number of points done after each chunk."""
+    device = next(model.parameters()).device
+    albedo, roughness = [], []
+    for part, nrm in zip(position.split(chunk), lookup_normal.split(chunk)):
+        m = decode_material(model, part.to(device=device, dtype=torch.float32),
+                            nrm.to(device=device, dtype=torch.float32))
+        albedo.append(m.albedo)
+        roughness.append(m.roughness)
+        if progress is not None:
+            progress(len(part))
+    if not albedo:
+        return Material(torch.zeros(0, 3, device=device), torch.zeros(0, device=device))
+    return Material(torch.cat(albedo), torch.cat(roughness))

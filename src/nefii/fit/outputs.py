@@ -7,9 +7,7 @@
     RUN/sg.npy             (K, 7) float32: axis xyz, sharpness, amplitude rgb (SG light only)
     RUN/checkpoints/       resumable training state (step_XXXXXXX.pt, atomic)
 
-``material_at`` is the one decode of the recovered material at given surface points, the same
-``model.material`` call that ``path_trace`` makes (fit, eval, relight); export bakes it into
-textures.
+The recovered material is read back only through :func:`nefii.fit.model.decode_material`.
 """
 from __future__ import annotations
 
@@ -17,7 +15,6 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -27,7 +24,6 @@ from ..io.atomic import atomic_path, write_text_atomic
 from ..fields.environment import SGEnvironment
 from ..fields.features import FeatureField
 from ..io.exr import write_exr
-from ..render.brdf import Material
 from ..render.sg import SGMixture
 from .build import build_model, make_encoding
 from .config import FitConfig, config_from_dict, config_to_dict
@@ -120,25 +116,3 @@ def source_config(source: GeometrySource):
     from ..sdf.outputs import load_sdf
     assert source.folder is not None
     return load_sdf(source.folder).config
-
-
-@torch.no_grad()
-def material_at(model: NeFIIModel, points: torch.Tensor, normals: torch.Tensor, chunk: int = 65536,
-                progress: Callable[[int], None] | None = None) -> Material:
-    """The fitted material at world surface points ``(N, 3)`` with unit shading normals ``(N, 3)``,
-    decoded in chunks without gradient.
-
-    Returns albedo ``(N, 3)`` (linear, [0, 1]) and roughness ``(N,)`` on the model's device;
-    ``progress(n)`` is called with the number of points done after each chunk.
-    """
-    device = next(model.parameters()).device
-    albedo, roughness = [], []
-    for part, nrm in zip(points.split(chunk), normals.split(chunk)):
-        m = model.material(part.to(device=device, dtype=torch.float32), nrm.to(device=device, dtype=torch.float32))
-        albedo.append(m.albedo)
-        roughness.append(m.roughness)
-        if progress is not None:
-            progress(len(part))
-    if not albedo:
-        return Material(torch.zeros(0, 3, device=device), torch.zeros(0, device=device))
-    return Material(torch.cat(albedo), torch.cat(roughness))

@@ -11,7 +11,7 @@ from ..camera import pixel_rays
 from ..data.scene import SceneData
 from ..errors import InputError
 from ..geometry.base import Geometry, Rays
-from .model import SurfacePoints
+from .path_trace import SurfacePoints
 
 
 @dataclass(frozen=True)

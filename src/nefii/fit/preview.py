@@ -11,7 +11,8 @@ from ..evaluate.render_views import render_view
 from ..evaluate.report import tonemap_display
 from ..geometry.base import Geometry
 from ..io.images import linear_to_srgb, write_png
-from .model import NeFIIModel, Transport
+from .model import NeFIIModel
+from .path_trace import Transport
 
 
 @torch.no_grad()

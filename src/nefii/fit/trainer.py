@@ -15,13 +15,19 @@ import torch
 from tqdm import tqdm
 
 from ..geometry.base import Geometry
-from ..io.checkpoints import latest_checkpoint, save_checkpoint
+from ..io.checkpoints import save_checkpoint
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
-from .losses import LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, unobserved_loss
-from .model import NeFIIModel, Transport
+from .losses import LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, smoothness, unobserved_loss
+from .model import NeFIIModel, decode_material
+from .path_trace import SurfacePoints, Transport, path_trace
 from .pixels import Pixels
 from .policies import Alternation, RoughnessWarmup
+
+
+def transport_of(cfg: FitConfig) -> Transport:
+    """The light paths a run's estimator follows (training, eval and previews alike)."""
+    return Transport(indirect=cfg.indirect, visibility=cfg.visibility, ray_offset=cfg.ray_offset)
 
 
 class NonFiniteLoss(RuntimeError):
@@ -42,14 +48,7 @@ class Trainer:
         self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
         self.dist = dist
         self.params = [p for p in self.model.parameters() if p.requires_grad]   # a frozen SDF's are not
-        shape = [p for name, p in model.env.named_parameters() if name in ("axis_raw", "log_sharpness")]
-        shape_ids = {id(p) for p in shape}
-        light = [p for p in model.env.parameters() if id(p) not in shape_ids]
-        env_ids = {id(p) for p in model.env.parameters()}
-        nets = [p for p in self.params if id(p) not in env_ids]
-        groups = [{"params": nets, "lr": cfg.lr}, {"params": light, "lr": cfg.lr_light}]
-        if shape:
-            groups.append({"params": shape, "lr": cfg.lr_light_shape})
+        groups = model.param_groups(cfg.lr, cfg.lr_light, cfg.lr_light_shape)
         try:  # the fused kernel is ~5x faster on the CPU for the large hash-grid tables
             self.optimizer = torch.optim.Adam(groups, fused=True)
         except (RuntimeError, TypeError):
@@ -60,8 +59,8 @@ class Trainer:
         self.buffer = SecondaryHitBuffer(cfg.secondary_buffer)
         self.warmup = RoughnessWarmup(int(round(cfg.roughness_warmup * cfg.steps)))
         self.alternation = Alternation(cfg.unobserved_every, cfg.unobserved)
-        self.transport = Transport(indirect=cfg.indirect, visibility=cfg.visibility)
-        self.prior = SmoothnessPrior(cfg.smooth_albedo, cfg.smooth_roughness, cfg.smooth_radius * geometry.scale)
+        self.transport = transport_of(cfg)
+        self.prior = SmoothnessPrior(cfg.smooth_albedo, cfg.smooth_radius * geometry.scale)
         self.step = 0
 
     # ---- one step
@@ -72,18 +71,35 @@ class Trainer:
         j = torch.randint(max(len(px.bg_dirs), 1), (nb,), generator=g, device=self.device)
         return px.select(i, j)
 
+    def _trace(self, pts: SurfacePoints, rough: float | None):
+        """The material at ``pts`` and the estimator's colour there (Eq. 2-4)."""
+        material = decode_material(self.model, pts.position, pts.lookup_normal, rough)
+        traced = path_trace(self.model, self.geometry, pts, material, self.cfg.num_samples, self.generator,
+                            self.transport)
+        return material, traced
+
     def train_step(self) -> StepLog:
-        cfg, step = self.cfg, self.step
+        cfg, step, model = self.cfg, self.step, self.model
         rough = self.warmup.override(step)
         if self.alternation.unobserved(step) and len(self.buffer) > 0:
+            # ---- Eq. 8: secondary hits drawn from the buffer, path-traced against the cache there
             pts = self.buffer.sample(cfg.unobserved_points, self.generator)
-            terms = unobserved_loss(self.model, self.geometry, pts, cfg.num_samples, self.generator,
-                                    self.transport, rough, cfg.tonemap, cfg.loss)
+            _, traced = self._trace(pts, rough)
+            terms = unobserved_loss(traced, model.cache(pts.position, pts.normal, pts.wo), cfg.tonemap, cfg.loss)
             kind = "unobserved"
         else:
-            terms, traced = observed_loss(self.model, self.geometry, self._observed_batch(), cfg.num_samples,
-                                          self.generator, self.transport, rough, cfg.beta1, cfg.beta2, cfg.tonemap,
-                                          self.prior, cfg.loss)
+            # ---- Eq. 7: a batch of observed pixels and background pixels
+            batch = self._observed_batch()
+            pts = batch.points
+            material, traced = self._trace(pts, rough)
+            smooth = None
+            if self.prior.active:
+                near = self.prior.neighbours(pts.position, pts.normal, self.generator)
+                smooth = smoothness(material.albedo, decode_material(model, near, pts.lookup_normal, rough).albedo,
+                                    self.prior.weight)
+            terms = observed_loss(traced, model.cache(pts.position, pts.normal, pts.wo), batch.rgb,
+                                  model.env.radiance(batch.bg_dirs), batch.bg_rgb, cfg.tonemap, cfg.loss,
+                                  cfg.beta1, cfg.beta2, smooth)
             self.buffer.add(traced.secondary)
             kind = "observed"
         if any_rank(not bool(torch.isfinite(terms.total)), self.dist, self.device):
@@ -124,10 +140,6 @@ class Trainer:
         if not self.dist.is_main:
             return None
         return save_checkpoint(folder, self.step, self.state_dict())
-
-    @staticmethod
-    def latest_checkpoint(folder: Path) -> Path | None:
-        return latest_checkpoint(folder)
 
     # ---- the loop
     def fit(self, checkpoint_dir: Path, log=None, progress: bool = True, preview=None) -> None:

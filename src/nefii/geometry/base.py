@@ -40,9 +40,8 @@ class SurfaceHit:
     geometric_normal: Float[Tensor, "*bs 3"]
     """unit face normal, facing outwards (winding order)"""
     lookup_normal: Float[Tensor, "*bs 3"]
-    """normal along which the material field's lookup is offset (``MaterialField``'s ``normal_offset``):
-    the unit shading normal, or a mesh's own, smoother, lookup normals, whose length may be scaled to the
-    share of the offset a point takes (0 to 1: ``MeshGeometry.from_file``'s ``lookup_separation``)"""
+    """unit normal along which the material field's lookup is offset (``MaterialField``'s ``normal_offset``):
+    the shading normal, or a mesh's own smoother normals (``MeshGeometry.from_file``'s ``lookup_sigma``)"""
     triangle_id: Int[Tensor, " *bs"]
     """-1 where nothing is hit (and for backends without triangles)"""
     features: Float[Tensor, "*bs F"] | None = None

@@ -55,25 +55,10 @@ def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray, normals: np.n
     return n.astype(normals.dtype)
 
 
-def interpolate_offsets(per_vertex: Float[Tensor, "*bs 3 3"], bary: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
-    """A point's material-lookup offset vector from its triangle's three vertex vectors and its barycentrics:
-    the direction of the interpolated vectors, the length of the interpolated lengths. For unit vertex vectors
-    this is the interpolated, renormalised normal; vectors scaled per vertex (:func:`thickness_weights`) keep
-    their scale varying linearly over the triangle (zero where all three are zero). The ray caster and the
-    texture bake both interpolate through here."""
-    w = bary.unsqueeze(-1)
-    direction = normalize((per_vertex * w).sum(-2))
-    return direction * (per_vertex.norm(dim=-1, keepdim=True) * w).sum(-2)
-
-
-def thickness_weights(thickness: np.ndarray, separation: float) -> np.ndarray:
-    """Per-vertex share of the material offset ``d`` that encodes a wall's two faces ``separation`` (= 2d)
-    apart and no further: ``clip(1 - t / separation, 0, 1)`` for a wall ``t`` thick along the offset, since
-    two faces each pushed out by ``d w`` are then encoded ``t + 2 d w = max(t, separation)`` apart. A sheet
-    gets the full offset, parts thicker than ``separation`` the exact lookup (``inf``: nothing behind, 0)."""
-    if separation <= 0:
-        raise ValueError(f"thickness_weights wants a positive separation, got {separation}")
-    return np.clip(1.0 - np.asarray(thickness, dtype=np.float64) / separation, 0.0, 1.0)
+def interpolate_normals(per_vertex: Float[Tensor, "*bs 3 3"], bary: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
+    """A point's unit normal from its triangle's three vertex normals and its barycentrics (interpolated,
+    renormalised). The ray caster and the texture bake both interpolate through here."""
+    return normalize((per_vertex * bary.unsqueeze(-1)).sum(-2))
 
 
 class MeshGeometry:
@@ -81,10 +66,9 @@ class MeshGeometry:
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None,
                  threads: int | None = None, lookup_normals: np.ndarray | None = None) -> None:
-        """``normals``: unit vertex (shading) normals, default area-weighted; ``lookup_normals``: vertex
-        normals along which the material field's lookup is offset (:attr:`SurfaceHit.lookup_normal`), unit or
-        scaled to the share of the offset a vertex takes (:func:`thickness_weights`), default the shading
-        normals."""
+        """``normals``: unit vertex (shading) normals, default area-weighted; ``lookup_normals``: unit vertex
+        normals along which the material field's lookup is offset (:attr:`SurfaceHit.lookup_normal`), default
+        the shading normals."""
         from embreex import rtcore_scene as rtcs
         from embreex.mesh_construction import TriangleMesh
 
@@ -122,26 +106,13 @@ class MeshGeometry:
         self.lookup_normals = lookup
         self._lookup_t = self._normals_t if lookup is self.vertex_normals else torch.from_numpy(lookup)
 
-    def wall_thickness(self, directions: np.ndarray | None = None) -> np.ndarray:
-        """(V,) distance from each vertex, inwards along ``-directions`` (unit, (V,3); default the lookup
-        normals), to the surface behind it: the thickness of the wall the vertex lies on; ``inf`` where the
-        ray leaves the mesh (an open sheet, a hole)."""
-        n = self.lookup_normals if directions is None else np.asarray(directions, dtype=np.float32)
-        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-20)
-        start = 1e-4 * self.scale                                              # off the vertex's own triangles
-        rays = Rays(torch.from_numpy(self.vertices - start * n), torch.from_numpy(-n))
-        return self.intersect(rays).t.double().numpy() + start
-
     @staticmethod
     def from_file(path: str | Path, normal_sigma: float = 0.0, lookup_sigma: float = 0.0,
-                  lookup_separation: float = 0.0, **kwargs) -> "MeshGeometry":
+                  **kwargs) -> "MeshGeometry":
         """Load PLY/OBJ/GLB/... with trimesh; raises InputError naming the file on failure. ``normal_sigma`` > 0
         smooths the vertex normals to that lateral scale, a fraction of the bounding-box diagonal (see
         :func:`smooth_vertex_normals`); ``lookup_sigma`` > 0 gives the material lookup its own normals, the
-        area-weighted ones smoothed to that scale (0: the shading normals). ``lookup_separation`` > 0 (a
-        fraction of the diagonal) scales each vertex's lookup normal by :func:`thickness_weights` of the
-        wall it lies on (:meth:`wall_thickness`), so a material offset of half that separation pushes a
-        thin wall's faces apart and leaves thick parts' lookup exact."""
+        area-weighted ones smoothed to that scale (0: the shading normals)."""
         import trimesh
 
         path = Path(path)
@@ -162,11 +133,7 @@ class MeshGeometry:
             kwargs["normals"] = smooth_vertex_normals(vertices, faces, raw, normal_sigma * diagonal)
             if lookup_sigma > 0:
                 kwargs["lookup_normals"] = smooth_vertex_normals(vertices, faces, raw, lookup_sigma * diagonal)
-        geometry = MeshGeometry(vertices, faces, **kwargs)
-        if lookup_separation > 0:
-            weights = thickness_weights(geometry.wall_thickness(), lookup_separation * geometry.scale)
-            geometry.set_lookup_normals(geometry.lookup_normals * weights[:, None].astype(np.float32))
-        return geometry
+        return MeshGeometry(vertices, faces, **kwargs)
 
     # ---- Embree calls, split over threads
     def _run(self, o: np.ndarray, d: np.ndarray, tmax: np.ndarray | None, query: str):
@@ -222,11 +189,11 @@ class MeshGeometry:
         position[idx] = (self._vertices_t[f] * w).sum(1)   # on the triangle: what ray offsets rely on
 
         normal = torch.zeros(n, 3)
-        normal[idx] = normalize((self._normals_t[f] * w).sum(1))
+        normal[idx] = interpolate_normals(self._normals_t[f], w.squeeze(-1))
         lookup = normal
         if self._lookup_t is not self._normals_t:
             lookup = torch.zeros(n, 3)
-            lookup[idx] = interpolate_offsets(self._lookup_t[f], w.squeeze(-1))
+            lookup[idx] = interpolate_normals(self._lookup_t[f], w.squeeze(-1))
         geo[idx] = self._face_normals_t[tri]
         t_all = torch.where(valid, torch.from_numpy(tfar), torch.tensor(float("inf")))
 

@@ -18,7 +18,8 @@ Each path vertex does what Mitsuba's ``path`` integrator does (Veach's next-even
   Russian roulette from ``rr_depth`` bounces on (survive with ``min(max β, 0.95)``, ``β /= q``).
 
 Supports: the simplified Disney BRDF of :mod:`nefii.render.brdf` (Lambert + GGX, ``F0 = 0.04``)
-from any material function ``x -> Material``; shading normals; the environment as the only light.
+from any material function ``(x, lookup normal) -> Material`` (the fitted model's
+``decode_material``); shading normals; the environment as the only light.
 Does not: emissive surfaces, transmission, delta lobes (roughness >= 0.089 keeps GGX finite),
 two-sided surfaces (a ray reaching the back of a triangle ends there, as Mitsuba's principled
 BSDF is one-sided), pixel filtering or cameras (the caller gives the primary rays), gradients.
@@ -42,8 +43,8 @@ from .bsdf import f_r, pdf_bsdf, sample_bsdf, specular_probability
 from .environment import Environment
 
 MaterialFn = Callable[[Float[Tensor, "B 3"], Float[Tensor, "B 3"]], Material]
-"""``(x, n) -> Material`` at world surface points with unit shading normals (the fitted material
-field, or an analytic one in tests)."""
+"""``(x, lookup_normal) -> Material`` at world surface points, given the hits' :attr:`SurfaceHit.lookup_normal`
+(the fitted model's :func:`nefii.fit.model.decode_material`, or an analytic material in tests)."""
 
 RR_MAX_SURVIVAL = 0.95
 
@@ -91,16 +92,16 @@ def trace_paths(rays: Rays, geometry: Geometry, material: MaterialFn, env: Envir
     # path state, compacted to the live paths: index, throughput, and the vertex x
     idx = first.valid.nonzero().squeeze(-1)                  # path of each live entry
     β = torch.ones(len(idx), 3, device=dev, dtype=dtype)     # path throughput
-    x, n, ng = _take(idx, first.position, first.normal, first.geometric_normal)
+    x, n, ng, nl = _take(idx, first.position, first.normal, first.geometric_normal, first.lookup_normal)
     wo = -d[idx]                                             # towards the previous vertex
 
     for depth in range(settings.max_bounces):
         # ---- surface interaction: one-sided surfaces, shading frame, material
         front = dot(ng, wo) > 0
-        idx, β, x, n, ng, wo = _take(front, idx, β, x, n, ng, wo)
+        idx, β, x, n, ng, nl, wo = _take(front, idx, β, x, n, ng, nl, wo)
         if len(idx) == 0:
             break
-        m = material(x, n)
+        m = material(x, nl)
         frame = Frame.from_normal(n)
         wo_l = frame.to_local(view_above_surface(n, wo))
         alpha = alpha_from_roughness(m.roughness)
@@ -149,7 +150,7 @@ def trace_paths(rays: Rays, geometry: Geometry, material: MaterialFn, env: Envir
             go_on = go_on & (u[:, 5] < q_rr)
             β = β / q_rr.clamp_min(1e-30).unsqueeze(-1)
         idx, β, wi = _take(go_on, idx, β, wi)
-        x, n, ng = _take(go_on, nxt.position, nxt.normal, nxt.geometric_normal)
+        x, n, ng, nl = _take(go_on, nxt.position, nxt.normal, nxt.geometric_normal, nxt.lookup_normal)
         wo = -wi
 
     return PathRadiance(radiance=L, hit=first.valid)

@@ -29,15 +29,15 @@ def trace_paths_reference(rays: Rays, geometry: Geometry, material: MaterialFn, 
     first = geometry.intersect(Rays(o, d))
     idx = first.valid.nonzero().squeeze(-1)
     β = torch.ones(len(idx), 3, device=o.device, dtype=o.dtype)   # path throughput
-    x, n, ng, wo = first.position[idx], first.normal[idx], first.geometric_normal[idx], -d[idx]
+    x, n, ng, nl, wo = first.position[idx], first.normal[idx], first.geometric_normal[idx], first.lookup_normal[idx], -d[idx]
     for _ in range(settings.max_bounces):
         keep = dot(ng, wo) > 0                                    # one-sided, as the MIS tracer
-        idx, β, x, n, ng, wo = (t[keep] for t in (idx, β, x, n, ng, wo))
+        idx, β, x, n, ng, nl, wo = (t[keep] for t in (idx, β, x, n, ng, nl, wo))
         if len(idx) == 0:
             break
         frame = Frame.from_normal(n)
         wi_l = sample_cosine(torch.rand(len(idx), 2, generator=generator, device=o.device, dtype=o.dtype))
-        β = β * f_r(material(x, n), frame.to_local(view_above_surface(n, wo)), wi_l, settings.f0,
+        β = β * f_r(material(x, nl), frame.to_local(view_above_surface(n, wo)), wi_l, settings.f0,
                     settings.specular) * math.pi
         wi = frame.to_world(wi_l)
         hit = geometry.intersect(spawn_rays(x, ng, wi, offset))
@@ -45,6 +45,6 @@ def trace_paths_reference(rays: Rays, geometry: Geometry, material: MaterialFn, 
         L.index_add_(0, idx[esc], β[esc] * env.radiance(wi[esc]))
         h = hit.valid
         idx, β, wo = idx[h], β[h], -wi[h]
-        x, n, ng = hit.position[h], hit.normal[h], hit.geometric_normal[h]
+        x, n, ng, nl = hit.position[h], hit.normal[h], hit.geometric_normal[h], hit.lookup_normal[h]
     return PathRadiance(radiance=L, hit=first.valid)
 

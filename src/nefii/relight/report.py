@@ -64,7 +64,7 @@ def albedo_scale_from_ground_truth(material: MaterialFn, geometry: Geometry, sce
         hit = geometry.intersect(Rays(o.reshape(-1, 3).float().to(device), d.reshape(-1, 3).float().to(device)))
         pred = torch.zeros(H * W, 3, device=device)
         for c in hit.valid.nonzero().squeeze(-1).split(1 << 16):
-            pred[c] = material(hit.position[c], hit.normal[c]).albedo.float()
+            pred[c] = material(hit.position[c], hit.lookup_normal[c]).albedo.float()
         mask = hit.valid.cpu().numpy().reshape(H, W)
         mask &= (gt.mask[v] if gt.mask is not None else
                  scene.masks[v] if scene.masks is not None else torch.ones(H, W, dtype=torch.bool)).numpy()
@@ -73,7 +73,8 @@ def albedo_scale_from_ground_truth(material: MaterialFn, geometry: Geometry, sce
 
 
 def scaled_material(material: MaterialFn, scale: np.ndarray | None) -> MaterialFn:
-    """``(x, n) -> Material(clamp(scale * albedo, 0, 1), roughness)``; ``material`` itself without a scale."""
+    """``(x, lookup_normal) -> Material(clamp(scale * albedo, 0, 1), roughness)``; ``material`` itself without
+    a scale."""
     if scale is None:
         return material
 

@@ -23,6 +23,7 @@ from ..io.exr import write_exr
 from . import cameras, layout
 from .envmaps import bake_equirect
 from .meshes import write_ply
+from .textures import write_material
 from .mitsuba_backend import MitsubaRenderer, bake_for_mitsuba, import_mitsuba
 from .scenes import SCENES, build_scene
 from .skies import get_environment
@@ -112,6 +113,7 @@ def synthesize(settings: SynthSettings, out: str | Path, *, progress: bool = Tru
 
     with atomic_dir(out) as tmp:
         write_ply(tmp / "mesh.ply", scene.atlas.mesh)
+        write_material(tmp / "material.npz", scene.atlas)
         write_exr(tmp / "envmap.exr", maps[spec.environment][0])
         for name in spec.relight:
             write_exr(tmp / "relight" / f"{name}.exr", maps[name][0])

@@ -123,3 +123,15 @@ def build_atlas(parts: list[tuple[str, TriMesh, ProceduralMaterial]], tile: int 
         uv = np.stack([(x0 + gutter + mesh.uv[:, 0] * inner) / W, (y0 + gutter + mesh.uv[:, 1] * inner) / H], -1)
         meshes.append(mesh.with_uv(uv))
     return Atlas(merge(meshes), base, rough, tuple(p[0] for p in parts), tuple(len(p[1].faces) for p in parts))
+
+
+def write_material(path, atlas: Atlas) -> None:
+    """The ground-truth material as the renderer saw it, so it can be looked up at any surface point:
+    ``uv`` (V, 2) per vertex of ``mesh.ply`` (atlas space, this module's convention), ``base_color``
+    (H, W, 3) and ``roughness`` (H, W), float32, read bilinearly with clamped borders."""
+    from ..io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, uv=atlas.mesh.uv.astype(np.float32), base_color=atlas.base_color.astype(np.float32),
+                                roughness=atlas.roughness.astype(np.float32))

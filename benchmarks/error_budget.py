@@ -1,0 +1,314 @@
+"""Where the material error comes from: the ``cpu`` fit with one unknown at a time replaced by the truth.
+
+    python -m benchmarks.error_budget run SCENE_DIR ROW --seed S --out DIR [--steps N] [--eval-spp 32]
+    python -m benchmarks.error_budget table RUNS_DIR       # -> benchmarks/results/error_budget.md
+
+Rows (each a fit of the ``cpu`` preset, scored by ``nefii.evaluate.run.evaluate_run`` on the test views):
+
+* ``floor``: no fit. The true material (``material.npz``) under the true environment (``envmap.exr``,
+  importance-sampled) with full multi-bounce transport (``nefii.relight``), rendered through nefii's BRDF
+  (Lambert + GGX, F0 0.04) and compared with the test photos: what the simplified BRDF costs against the
+  renderer's principled BSDF, the best novel-view PSNR any fit could reach;
+* ``drift``: everything true (material, environment, indirect light traced with the true material), only
+  roughness freed through a zero-initialised residual for ``--drift-steps`` steps, no warm-up: where the
+  estimator and the loss pull roughness from the truth;
+* ``light_known``: the true environment, frozen, in place of the 128 SGs;
+* ``material_known``: albedo and roughness frozen at the truth (light and cache are fitted);
+* ``indirect_known``: the radiance cache replaced by tracing further bounces with the current material and
+  light (the relight path tracer's transport), to price the cache;
+* ``full``: the ``cpu`` preset as ``nefii fit`` runs it;
+* ``constant``: albedo 0.5 and roughness 0.5 everywhere, scored without a fit.
+
+A lab script: the substitutes below are benchmark code, built from nefii's public pieces.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from nefii.camera import pixel_rays
+from nefii.data import load_scene
+from nefii.data.material import MaterialOnMesh, load_material
+from nefii.evaluate.run import eval_mask, evaluate_run, ground_truth
+from nefii.evaluate.table1 import ViewArrays, mean_scores, view_scores
+from nefii.fields.encodings import HashGrid
+from nefii.fields.mlp import mlp
+from nefii.fit.config import resolve_config
+from nefii.fit.model import NeFIIModel, decode_material
+from nefii.fit.outputs import FittedRun
+from nefii.fit.session import prepare_fit
+from nefii.fit.trainer import Trainer
+from nefii.geometry import Rays
+from nefii.relight.environment import Environment, load_environment
+from nefii.relight.pathtracer import PathSettings, trace_paths
+from nefii.relight.render import render_relit
+from nefii.render.brdf import ROUGHNESS_MIN, ROUGHNESS_RANGE, Material, roughness_from_logit
+from nefii.render.equirect import pixel_directions
+
+from .common import code_version, machine, stamp, write_results
+
+ROWS = ("floor", "drift", "light_known", "material_known", "indirect_known", "full", "constant")
+GLOSSY = 0.3
+"""true roughness below this counts as glossy in the drift figures"""
+
+
+# --------------------------------------------------------------------------- substitutes for the learned parts
+
+def roughness_logit(r: Tensor) -> Tensor:
+    """The inverse of ``roughness_from_logit``."""
+    p = ((r - ROUGHNESS_MIN) / ROUGHNESS_RANGE).clamp(1e-4, 1 - 1e-4)
+    return torch.log(p) - torch.log1p(-p)
+
+
+class TrueMaterial(nn.Module):
+    """The scene's material with the material field's call signature; ``free_roughness`` adds a learned,
+    zero-initialised residual to the roughness logit (the drift row)."""
+
+    def __init__(self, lookup: MaterialOnMesh, box: tuple[Tensor, Tensor], free_roughness: bool) -> None:
+        super().__init__()
+        self.lookup = lookup
+        self.residual = None
+        if free_roughness:
+            self.encoding = HashGrid(12, 2, 16, 8, 128)
+            self.residual = mlp(self.encoding.out_dim, 1, 64, 2)
+            with torch.no_grad():
+                last = [m for m in self.residual.modules() if isinstance(m, nn.Linear)][-1]
+                last.weight.zero_()
+                last.bias.zero_()
+            self.register_buffer("lo", box[0].float())
+            self.register_buffer("size", (box[1] - box[0]).float())
+
+    def forward(self, x: Tensor, normal: Tensor | None = None, roughness_override: float | None = None) -> Material:
+        with torch.no_grad():
+            m = self.lookup(x.detach(), normal.detach())
+        rough = m.roughness.to(x)
+        if self.residual is not None:
+            rough = roughness_from_logit(roughness_logit(rough) + self.residual(self.encoding((x - self.lo) / self.size))[..., 0])
+        if roughness_override is not None:
+            rough = torch.full_like(rough, roughness_override)
+        return Material(m.albedo.to(x), rough)
+
+
+class TrueEnvironment(nn.Module):
+    """The true environment map, frozen: radiance, and itself as the estimator's light sampler."""
+
+    def __init__(self, env: Environment) -> None:
+        super().__init__()
+        self.light = env
+
+    def shape_parameters(self) -> list[nn.Parameter]:
+        return []
+
+    def radiance(self, w: Tensor) -> Tensor:
+        return self.light.radiance(w)
+
+    def light_sampler(self) -> Environment:
+        return self.light
+
+    def to_equirect(self, height: int, width: int) -> Tensor:
+        return self.radiance(pixel_directions(height, width, device=self.light.image.device))
+
+
+class PathLight:
+    """A learned environment (SG or grid) as the relight path tracer's light: radiance, and directions drawn
+    from its estimator sampler with the lobe choice made normal-free (``n = 0``: lobes by energy alone)."""
+
+    def __init__(self, env: nn.Module, generator: torch.Generator | None) -> None:
+        self.env, self.sampler, self.generator = env, env.light_sampler(), generator
+
+    def radiance(self, w: Tensor) -> Tensor:
+        return self.env.radiance(w).detach()
+
+    def sample_direction(self, u: Tensor) -> Tensor:
+        u3 = torch.cat([u, torch.rand(len(u), 1, generator=self.generator, device=u.device, dtype=u.dtype)], -1)
+        return self.sampler.sample(torch.zeros_like(u3), u3.unsqueeze(-2))[..., 0, :]
+
+    def pdf_direction(self, w: Tensor) -> Tensor:
+        return self.sampler.pdf(torch.zeros_like(w), w.unsqueeze(-2))[..., 0]
+
+
+class TracedIndirect(nn.Module):
+    """The radiance cache's call ``L(x', n', wo)`` answered by path tracing from ``x'`` towards ``wo`` with
+    the model's current material and light (no gradient), ``max_bounces`` bounces."""
+
+    def __init__(self, geometry, max_bounces: int = 4, seed: int = 0) -> None:
+        super().__init__()
+        self.geometry, self.max_bounces = geometry, max_bounces
+        self.generator = torch.Generator().manual_seed(seed)
+        self.model: NeFIIModel | None = None
+
+    def bind(self, model: NeFIIModel) -> None:
+        object.__setattr__(self, "model", model)                   # not a submodule: no cycle
+
+    @torch.no_grad()
+    def forward(self, position: Tensor, normal: Tensor, wo: Tensor) -> Tensor:
+        model = self.model
+        env = model.env.light if isinstance(model.env, TrueEnvironment) else PathLight(model.env, self.generator)
+        eps = 1e-3 * self.geometry.scale
+        rays = Rays(position + eps * wo, -wo)
+        out = trace_paths(rays, self.geometry, lambda x, nl: decode_material(model, x, nl), env, self.generator,
+                          PathSettings(max_bounces=self.max_bounces))
+        return out.radiance.to(position)
+
+
+# --------------------------------------------------------------------------- rows
+
+def constant_scores(scene) -> dict:
+    views = []
+    for v in range(len(scene)):
+        truth = ground_truth(scene, v)
+        mask = eval_mask(scene, v, np.ones(truth.rgb.shape[:2], bool))
+        pred = ViewArrays(truth.rgb, np.full_like(truth.albedo, 0.5), np.full_like(truth.roughness, 0.5), None)
+        views.append(view_scores(pred, truth, mask)[0])
+    return mean_scores(views)["masked"]
+
+
+@torch.no_grad()
+def floor_scores(data: Path, spp: int, seed: int) -> dict:
+    scene = load_scene(data, "test")
+    from nefii.geometry import MeshGeometry
+    mesh = MeshGeometry.from_file(scene.mesh_path)
+    truth_material = MaterialOnMesh(load_material(data), mesh)
+    env = load_environment(data / "envmap.exr")
+    g = torch.Generator().manual_seed(seed)
+    views = []
+    for v in range(len(scene)):
+        img = render_relit(mesh, truth_material, env, scene.cameras.c2w[v], scene.cameras.K[v], scene.height,
+                           scene.width, spp, g, PathSettings(max_bounces=8))
+        truth = ground_truth(scene, v)
+        mask = eval_mask(scene, v, img.coverage.numpy() > 0)
+        views.append(view_scores(ViewArrays(img.rgb.numpy(), None, None, None), truth, mask)[0])
+    return mean_scores(views)["masked"]
+
+
+def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift_steps: int, eval_spp: int) -> dict:
+    overrides = [f"seed={seed}", "preview_every=0", "checkpoint_every_s=1e9"]
+    if steps is not None:
+        overrides.append(f"steps={steps}")
+    if row in ("drift", "material_known"):
+        overrides.append("roughness_warmup=0")                      # the truth needs no warm-up
+    if row == "drift":
+        overrides.append(f"steps={drift_steps}")
+    if row in ("drift", "indirect_known"):
+        overrides.append("unobserved=false")                        # no cache to keep consistent
+    cfg = resolve_config("cpu", overrides)
+    session = prepare_fit(cfg, data)
+    cfg, model, geometry = session.config, session.model, session.geometry
+    if row in ("drift", "material_known"):
+        model.material = TrueMaterial(MaterialOnMesh(load_material(data), geometry), session.box, row == "drift")
+    if row in ("drift", "light_known"):
+        model.env = TrueEnvironment(load_environment(data / "envmap.exr"))
+    if row in ("drift", "indirect_known"):
+        model.cache = TracedIndirect(geometry, seed=seed)
+        model.cache.bind(model)
+    trainer = Trainer(cfg, model, geometry, session.pixels, torch.device("cpu"))
+    t0 = time.time()
+    while trainer.step < cfg.steps:
+        trainer.train_step()
+    fit_s = time.time() - t0
+    model.eval()
+    fitted = FittedRun(out, cfg, model, data, session.source.mesh, session.source)
+    test = load_scene(data, "test")
+    means = evaluate_run(fitted, test, out / "eval", eval_spp, torch.Generator().manual_seed(0))["masked"]
+    means["fit_s"] = fit_s
+    if row == "drift":
+        means.update(drift_figures(model, test, geometry))
+    return means
+
+
+@torch.no_grad()
+def drift_figures(model: NeFIIModel, scene, geometry) -> dict:
+    """Mean of (fitted - true) roughness over glossy and over rough pixels of the test views."""
+    d_glossy, d_rough = [], []
+    for v in range(len(scene)):
+        o, d = pixel_rays(scene.cameras.c2w[v], scene.cameras.K[v], scene.height, scene.width)
+        hit = geometry.intersect(Rays(o.reshape(-1, 3).float(), d.reshape(-1, 3).float()))
+        gt = scene.ground_truth.roughness[v].reshape(-1)
+        mask = hit.valid & scene.ground_truth.mask[v].reshape(-1)
+        pred = decode_material(model, hit.position[mask], hit.lookup_normal[mask]).roughness
+        diff = pred - gt[mask]
+        glossy = gt[mask] < GLOSSY
+        d_glossy.append(diff[glossy])
+        d_rough.append(diff[~glossy])
+    return {"drift_glossy": float(torch.cat(d_glossy).mean()), "drift_rough": float(torch.cat(d_rough).mean())}
+
+
+# --------------------------------------------------------------------------- table
+
+def table(runs: Path) -> None:
+    found: dict[tuple[str, str], list[dict]] = {}
+    for f in sorted(runs.glob("*/*/scores.json")):
+        blob = json.loads(f.read_text())
+        found.setdefault((blob["scene"], blob["row"]), []).append(blob)
+    scenes = sorted({s for s, _ in found})
+
+    def cell(vals: list[float | None], fmt: str) -> str:
+        vals = [v for v in vals if v is not None and math.isfinite(v)]
+        if not vals:
+            return "-"
+        m = float(np.mean(vals))
+        return (fmt.format(m) + (f" ± {fmt.format(np.ptp(vals) / 2)}" if len(vals) > 1 else "")) + \
+            ("" if len(vals) > 1 else " (1 seed)")
+
+    lines = [f"# error_budget ({stamp()}, code {code_version()})", "", f"Machine: {machine()}", "",
+             "The `cpu` preset on ground-truth geometry with one unknown replaced by the truth at a time "
+             "(benchmarks/error_budget.py). Mean of the seeds ± half their spread; masked test views. "
+             "Albedo aligned per view and channel as eval does.", ""]
+    for scene in scenes:
+        lines += [f"## {scene}", "", "| row | albedo PSNR | roughness MSE | specular PSNR | RGB PSNR | drift glossy "
+                  "| drift rough | seeds |", "|---|---|---|---|---|---|---|---|"]
+        for row in ROWS:
+            blobs = found.get((scene, row), [])
+            if not blobs:
+                continue
+            get = lambda k: [b["scores"].get(k) for b in blobs]  # noqa: E731
+            lines.append(f"| {row} | {cell(get('albedo_psnr'), '{:.2f}')} | {cell(get('roughness_mse'), '{:.4f}')} "
+                         f"| {cell(get('specular_psnr'), '{:.2f}')} | {cell(get('rgb_psnr'), '{:.2f}')} "
+                         f"| {cell(get('drift_glossy'), '{:+.3f}')} | {cell(get('drift_rough'), '{:+.3f}')} "
+                         f"| {', '.join(str(b['seed']) for b in blobs)} |")
+        lines.append("")
+    write_results("error_budget.md", lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("data", type=Path)
+    r.add_argument("row", choices=ROWS)
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--out", type=Path, required=True)
+    r.add_argument("--steps", type=int, default=None, help="override the preset's steps (smoke tests)")
+    r.add_argument("--drift-steps", type=int, default=300)
+    r.add_argument("--eval-spp", type=int, default=32)
+    r.add_argument("--threads", type=int, default=2)
+    t = sub.add_parser("table")
+    t.add_argument("runs", type=Path)
+    args = ap.parse_args()
+    if args.cmd == "table":
+        table(args.runs)
+        return
+    torch.set_num_threads(args.threads)
+    out = args.out / args.data.name / f"{args.row}_s{args.seed}"
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    if args.row == "constant":
+        scores = constant_scores(load_scene(args.data, "test"))
+    elif args.row == "floor":
+        scores = floor_scores(args.data, spp=64, seed=args.seed)
+    else:
+        scores = fit_row(args.data, args.row, args.seed, out, args.steps, args.drift_steps, args.eval_spp)
+    blob = {"scene": args.data.name, "row": args.row, "seed": args.seed, "scores": scores, "wall_s": time.time() - t0}
+    (out / "scores.json").write_text(json.dumps(blob, indent=2) + "\n")
+    print(json.dumps(blob))
+
+
+if __name__ == "__main__":
+    main()

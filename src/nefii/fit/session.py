@@ -1,0 +1,96 @@
+"""What a fit is, in one place: the geometry source, the training pixels' first hits, the model, the light
+initialisation and resuming. ``nefii fit``, the benchmarks and the tests all start a fit through
+:func:`prepare_fit`, so they measure the same recipe."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from ..data import load_scene
+from ..data.scene import SceneData
+from ..geometry import MeshGeometry
+from ..geometry.base import Geometry
+from .build import build_model
+from .config import FitConfig
+from .distributed import DistContext
+from .geometry_source import GeometrySource, adapt_to_source, resolve_source
+from .light_init import estimate_light, set_sg_parameters, sg_from_light
+from .model import NeFIIModel
+from .pixels import Pixels, first_hits
+from .trainer import Trainer
+
+
+@dataclass
+class FitSession:
+    """Everything a fit's loop and its outputs need; ``trainer.fit`` runs it."""
+
+    config: FitConfig
+    """the config as it applies to this geometry (:func:`adapt_to_source`)"""
+    scene: SceneData
+    """the training split"""
+    source: GeometrySource
+    geometry: Geometry
+    box: tuple[Tensor, Tensor]
+    """corners of the geometry's bounding box (CPU)"""
+    pixels: Pixels
+    trainer: Trainer
+
+    @property
+    def model(self) -> NeFIIModel:
+        return self.trainer.model
+
+
+def describe_geometry(source: GeometrySource, geometry: Geometry, cfg: FitConfig, feature_dim: int) -> str:
+    """One line: what the rays are cast against."""
+    if isinstance(geometry, MeshGeometry):
+        what = f"mesh {source.mesh} ({len(geometry.faces)} triangles)"
+    else:
+        what = f"SDF of {source.folder}, sphere-traced, feature vector of {feature_dim}"
+    if source.folder is not None:
+        what += (f" (a reconstruction: material offset {cfg.material_offset:g}, normals smoothed to "
+                 f"{source.normal_sigma:g} of the diagonal, the lookup's to {source.lookup_sigma:g})")
+    return what
+
+
+def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg: FitConfig) -> int:
+    """The SG lobes from the pixels' diffuse shading and shadows (``light.init = shading``); returns the
+    number of sharp lobes placed (0 when the config asks for no such start)."""
+    if cfg.light.kind != "sg" or cfg.light.init != "shading":
+        return 0
+    pts = pixels.points
+    est = estimate_light(pts.position, pts.normal, pts.geometric_normal, pixels.rgb, geometry,
+                         generator=torch.Generator().manual_seed(cfg.seed), ray_offset=cfg.ray_offset)
+    init = sg_from_light(est, cfg.light.num_lobes, sharp=cfg.light.sharpness_init_peak)
+    set_sg_parameters(model.env, init)
+    return int((init.sharpness == cfg.light.sharpness_init_peak).sum())
+
+
+def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometry_dir: Path | None = None,
+                device: torch.device = torch.device("cpu"), dist: DistContext = DistContext(),
+                checkpoint: Path | None = None, say: Callable[[str], None] = lambda s: None) -> FitSession:
+    """The fit of ``data`` (any format nefii reads) on ``mesh``, ``geometry_dir`` (the output of ``nefii
+    geometry``) or the dataset's own mesh, ready to train: first hits cast, model built, light initialised,
+    or, with ``checkpoint``, the training state loaded from it. ``say`` gets one line per stage."""
+    scene = load_scene(data, "train")
+    source = resolve_source(mesh, geometry_dir, scene.mesh_path, cfg.geometry_mode, data)
+    cfg, source = adapt_to_source(cfg, source)
+    geometry, features = source.open()
+    box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
+    say(f"{len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
+        f"{describe_geometry(source, geometry, cfg, features.dim if features else 0)}")
+    pixels = first_hits(scene, geometry).to(device)
+    say(f"{len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels")
+    model = build_model(cfg, box, features)
+    if checkpoint is None:
+        n_sharp = initialise_light(model, pixels, geometry, cfg)
+        if n_sharp:
+            say(f"lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
+    trainer = Trainer(cfg, model, geometry, pixels, device, dist)
+    if checkpoint is not None:
+        trainer.load_state_dict(torch.load(checkpoint, map_location=device, weights_only=False))
+        say(f"resumed from {checkpoint} at step {trainer.step}")
+    return FitSession(cfg, scene, source, geometry, box, pixels, trainer)
