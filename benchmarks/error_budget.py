@@ -45,8 +45,9 @@ from nefii.fit.model import NeFIIModel, decode_material
 from nefii.fit.outputs import FittedRun
 from nefii.fit.session import prepare_fit
 from nefii.fit.trainer import Trainer
-from nefii.geometry import Rays
-from nefii.relight.environment import Environment, load_environment
+from nefii.raycast import Rays
+from nefii.relight.environment import load_environment
+from nefii.render.envmap import Environment
 from nefii.relight.pathtracer import PathSettings, trace_paths
 from nefii.relight.render import render_relit
 from nefii.render.brdf import ROUGHNESS_MIN, ROUGHNESS_RANGE, Material, roughness_from_logit
@@ -96,6 +97,15 @@ class TrueMaterial(nn.Module):
         return Material(m.albedo.to(x), rough)
 
 
+def true_environment(data: Path, device: torch.device, height: int = 256) -> Environment:
+    """The scene's ``envmap.exr`` averaged down to ``height`` rows (power kept; a 1-degree sun stays within a
+    pixel or two), so that drawing directions from it costs no more than from the SGs."""
+    image = load_environment(data / "envmap.exr").image
+    f = max(1, image.shape[0] // height)
+    H, W = image.shape[0] // f, image.shape[1] // f
+    return Environment.from_image(image[:H * f, :W * f].reshape(H, f, W, f, 3).mean((1, 3)).to(device))
+
+
 class TrueEnvironment(nn.Module):
     """The true environment map, frozen: radiance, and itself as the estimator's light sampler."""
 
@@ -140,8 +150,8 @@ class TracedIndirect(nn.Module):
 
     def __init__(self, geometry, max_bounces: int = 4, seed: int = 0) -> None:
         super().__init__()
-        self.geometry, self.max_bounces = geometry, max_bounces
-        self.generator = torch.Generator().manual_seed(seed)
+        self.geometry, self.max_bounces, self.seed = geometry, max_bounces, seed
+        self.generator: torch.Generator | None = None
         self.model: NeFIIModel | None = None
 
     def bind(self, model: NeFIIModel) -> None:
@@ -150,6 +160,8 @@ class TracedIndirect(nn.Module):
     @torch.no_grad()
     def forward(self, position: Tensor, normal: Tensor, wo: Tensor) -> Tensor:
         model = self.model
+        if self.generator is None or self.generator.device != position.device:
+            self.generator = torch.Generator(device=position.device).manual_seed(self.seed)
         env = model.env.light if isinstance(model.env, TrueEnvironment) else PathLight(model.env, self.generator)
         eps = 1e-3 * self.geometry.scale
         rays = Rays(position + eps * wo, -wo)
@@ -173,7 +185,7 @@ def constant_scores(scene) -> dict:
 @torch.no_grad()
 def floor_scores(data: Path, spp: int, seed: int) -> dict:
     scene = load_scene(data, "test")
-    from nefii.geometry import MeshGeometry
+    from nefii.raycast import MeshGeometry
     mesh = MeshGeometry.from_file(scene.mesh_path)
     truth_material = MaterialOnMesh(load_material(data), mesh)
     env = load_environment(data / "envmap.exr")
@@ -188,7 +200,8 @@ def floor_scores(data: Path, spp: int, seed: int) -> dict:
     return mean_scores(views)["masked"]
 
 
-def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift_steps: int, eval_spp: int) -> dict:
+def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift_steps: int, eval_spp: int,
+            device: torch.device) -> dict:
     overrides = [f"seed={seed}", "preview_every=0", "checkpoint_every_s=1e9"]
     if steps is not None:
         overrides.append(f"steps={steps}")
@@ -199,16 +212,16 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
     if row in ("drift", "indirect_known"):
         overrides.append("unobserved=false")                        # no cache to keep consistent
     cfg = resolve_config("cpu", overrides)
-    session = prepare_fit(cfg, data)
+    session = prepare_fit(cfg, data, device=device)
     cfg, model, geometry = session.config, session.model, session.geometry
     if row in ("drift", "material_known"):
         model.material = TrueMaterial(MaterialOnMesh(load_material(data), geometry), session.box, row == "drift")
     if row in ("drift", "light_known"):
-        model.env = TrueEnvironment(load_environment(data / "envmap.exr"))
+        model.env = TrueEnvironment(true_environment(data, device))
     if row in ("drift", "indirect_known"):
         model.cache = TracedIndirect(geometry, seed=seed)
         model.cache.bind(model)
-    trainer = Trainer(cfg, model, geometry, session.pixels, torch.device("cpu"))
+    trainer = Trainer(cfg, model, geometry, session.pixels, device)
     t0 = time.time()
     while trainer.step < cfg.steps:
         trainer.train_step()
@@ -216,7 +229,7 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
     model.eval()
     fitted = FittedRun(out, cfg, model, data, session.source.mesh, session.source)
     test = load_scene(data, "test")
-    means = evaluate_run(fitted, test, out / "eval", eval_spp, torch.Generator().manual_seed(0))["masked"]
+    means = evaluate_run(fitted, test, out / "eval", eval_spp, torch.Generator(device=device).manual_seed(0))["masked"]
     means["fit_s"] = fit_s
     if row == "drift":
         means.update(drift_figures(model, test, geometry))
@@ -232,7 +245,8 @@ def drift_figures(model: NeFIIModel, scene, geometry) -> dict:
         hit = geometry.intersect(Rays(o.reshape(-1, 3).float(), d.reshape(-1, 3).float()))
         gt = scene.ground_truth.roughness[v].reshape(-1)
         mask = hit.valid & scene.ground_truth.mask[v].reshape(-1)
-        pred = decode_material(model, hit.position[mask], hit.lookup_normal[mask]).roughness
+        dev = next(model.parameters()).device
+        pred = decode_material(model, hit.position[mask].to(dev), hit.lookup_normal[mask].to(dev)).roughness.cpu()
         diff = pred - gt[mask]
         glossy = gt[mask] < GLOSSY
         d_glossy.append(diff[glossy])
@@ -289,6 +303,7 @@ def main() -> None:
     r.add_argument("--drift-steps", type=int, default=300)
     r.add_argument("--eval-spp", type=int, default=32)
     r.add_argument("--threads", type=int, default=2)
+    r.add_argument("--device", default="cpu")
     t = sub.add_parser("table")
     t.add_argument("runs", type=Path)
     args = ap.parse_args()
@@ -304,7 +319,8 @@ def main() -> None:
     elif args.row == "floor":
         scores = floor_scores(args.data, spp=64, seed=args.seed)
     else:
-        scores = fit_row(args.data, args.row, args.seed, out, args.steps, args.drift_steps, args.eval_spp)
+        scores = fit_row(args.data, args.row, args.seed, out, args.steps, args.drift_steps, args.eval_spp,
+                         torch.device(args.device))
     blob = {"scene": args.data.name, "row": args.row, "seed": args.seed, "scores": scores, "wall_s": time.time() - t0}
     (out / "scores.json").write_text(json.dumps(blob, indent=2) + "\n")
     print(json.dumps(blob))

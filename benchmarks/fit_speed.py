@@ -19,7 +19,7 @@ import torch
 from nefii.cli.common import pick_device, set_threads
 from nefii.fit.config import resolve_config
 from nefii.fit.session import prepare_fit
-from nefii.geometry import MeshGeometry, Rays
+from nefii.raycast import MeshGeometry, Rays
 from nefii.render.frame import normalize
 from nefii.synth import smallest_scene
 

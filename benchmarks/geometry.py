@@ -30,7 +30,7 @@ from nefii.evaluate.run import eval_mask, ground_truth
 from nefii.evaluate.table1 import ViewArrays, mean_scores, view_scores
 from nefii.fit.model import material_at
 from nefii.fit.outputs import load_run
-from nefii.geometry import MeshGeometry, Rays
+from nefii.raycast import MeshGeometry, Rays
 from nefii.sdf.metrics import mesh_distance
 
 from .common import CACHE, code_version, machine, scene, set_flags, stamp, write_results

@@ -12,7 +12,7 @@ import torch
 import trimesh
 
 from nefii.camera import intrinsics_from_fov, look_at, pixel_rays
-from nefii.geometry import MeshGeometry, Rays, spawn_rays
+from nefii.raycast import MeshGeometry, Rays, spawn_rays
 from nefii.io.exr import write_exr
 from nefii.io.images import write_png
 from nefii.render.brdf import Material

@@ -13,7 +13,7 @@ from data_fixtures import make_truth, write_nefii
 from nefii.data import FORMATS, load_scene
 from nefii.data.files import read_image
 from nefii.data.neus import decompose_projection
-from nefii.data.views import frame_indices
+from nefii.data.assemble import frame_indices
 from nefii.errors import InputError
 from nefii.io.exr import write_exr
 from nefii.io.images import srgb_to_linear

@@ -11,9 +11,9 @@ from nefii.evaluate.render_views import render_view
 from nefii.fit.build import build_model
 from nefii.fit.config import resolve_config
 from nefii.fit.model import decode_material, material_at
-from nefii.geometry import MeshGeometry, Rays
-from nefii.geometry.mesh import interpolate_normals
-from nefii.relight.environment import Environment
+from nefii.raycast import MeshGeometry, Rays
+from nefii.raycast.mesh import interpolate_normals
+from nefii.render.envmap import Environment
 from nefii.relight.pathtracer import PathSettings, trace_paths
 from nefii.render.brdf import Material
 

@@ -157,7 +157,7 @@ def test_the_material_is_decoded_along_the_lookup_normal():
 
     from nefii.fit.build import build_model
     from nefii.fit.model import decode_material
-    from nefii.geometry import MeshGeometry
+    from nefii.raycast import MeshGeometry
 
     ball = trimesh.creation.icosphere(subdivisions=2)
     geometry = MeshGeometry(ball.vertices, ball.faces)

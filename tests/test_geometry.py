@@ -7,7 +7,7 @@ import torch
 import trimesh
 
 from nefii.errors import InputError
-from nefii.geometry import MeshGeometry, Rays, spawn_rays
+from nefii.raycast import MeshGeometry, Rays, spawn_rays
 from nefii.render.frame import dot, normalize
 
 
@@ -163,7 +163,7 @@ def hollow_ball(tmp_path_factory):
 def test_normals_interpolate_to_unit_length_and_hit_the_vertices():
     """The interpolated normal is unit; at a corner (barycentric one-hot) it is that vertex's normal; for
     vertex normals all equal, it is that normal."""
-    from nefii.geometry.mesh import interpolate_normals
+    from nefii.raycast.mesh import interpolate_normals
     gen = torch.Generator().manual_seed(0)
     n = normalize(torch.randn(500, 3, 3, generator=gen) + torch.tensor([0.0, 0.0, 3.0]))
     b = torch.rand(500, 3, generator=gen)

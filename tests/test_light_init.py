@@ -8,7 +8,7 @@ from scipy.optimize import nnls
 from fit_fixtures import render, scene_mesh
 from nefii.camera import intrinsics_from_fov, look_at, pixel_rays
 from nefii.fit.light_init import estimate_light, nnls_fista, sg_from_light
-from nefii.geometry import MeshGeometry, Rays
+from nefii.raycast import MeshGeometry, Rays
 from nefii.render.sg import SGMixture, sg_integral
 
 

@@ -14,7 +14,7 @@ pytest.importorskip("xatlas")
 from nefii.camera import pixel_rays  # noqa: E402
 from nefii.cli.main import main  # noqa: E402
 from nefii.data import load_scene  # noqa: E402
-from nefii.geometry import MeshGeometry  # noqa: E402
+from nefii.raycast import MeshGeometry  # noqa: E402
 from nefii.synth import scenes  # noqa: E402
 
 
@@ -41,7 +41,7 @@ def test_texture_lookup_at_hits_is_what_mitsuba_shades(tiny, mi):
     """A random base-colour texture read at Embree hits through the atlas UVs (views.hit_uv) equals Mitsuba's
     own base colour at the same camera rays; reading it with v flipped does not."""
     from benchmarks.peers.mitsuba_peer import atlas_mesh, bitmap_texture, texture_at
-    from benchmarks.peers.views import cast_test_views, hit_uv
+    from benchmarks.peers.hits import cast_test_views, hit_uv
     from nefii.synth.mitsuba_backend import build_mesh, principled
 
     test = load_scene(tiny, "test")

@@ -10,10 +10,11 @@ import trimesh
 
 from chi2 import SphericalBinning, chi2_test, sidak_level
 from nefii.camera import intrinsics_from_fov, look_at, pixel_rays
-from nefii.geometry import MeshGeometry, Rays, spawn_rays
+from nefii.raycast import MeshGeometry, Rays, spawn_rays
 from nefii.io.exr import write_exr
 from nefii.relight.bsdf import pdf_bsdf, sample_bsdf, specular_probability
-from nefii.relight.environment import Environment, load_environment, rotate_z
+from nefii.relight.environment import load_environment
+from nefii.render.envmap import Environment, rotate_z
 from nefii.relight.pathtracer import PathSettings, trace_paths
 from nefii.relight.pathtracer_reference import trace_paths_reference
 from nefii.relight.render import render_relit

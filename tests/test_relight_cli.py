@@ -11,13 +11,13 @@ from fit_fixtures import relight_envs, scene_material, scene_mesh, write_rendere
 from nefii.cli.main import main
 from nefii.data import load_scene
 from nefii.errors import InputError
-from nefii.geometry import MeshGeometry
+from nefii.raycast import MeshGeometry
 from nefii.io.exr import read_exr, write_exr
 from nefii.relight.environment import load_environment, read_envmap
 from nefii.relight.pathtracer import PathSettings
 from nefii.relight.render import render_relit
-from nefii.relight.report import score_view, tone_map
-from nefii.relight.views import views_from_transforms
+from nefii.relight.scoring import score_view, tone_map
+from nefii.relight.cameras import views_from_transforms
 
 
 @pytest.fixture(scope="module")

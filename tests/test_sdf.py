@@ -16,8 +16,8 @@ from nefii.cli.main import main
 from nefii.data.scene import Cameras
 from nefii.errors import InputError
 from nefii.fields.encodings import HashGrid
-from nefii.geometry import MeshGeometry
-from nefii.geometry.base import Rays
+from nefii.raycast import MeshGeometry
+from nefii.raycast.base import Rays
 from nefii.sdf.config import geometry_config_from_dict, resolve_geometry_config
 from nefii.sdf.extract import extract_mesh
 from nefii.sdf.from_mesh import inside_by_parity, mesh_signed_distances
@@ -526,7 +526,7 @@ def test_a_reconstruction_takes_its_own_material_offset_and_normal_smoothing(tmp
 
 
 def test_smoothed_vertex_normals_lose_noise_and_keep_the_faces_of_a_thin_wall_apart():
-    from nefii.geometry.mesh import smooth_vertex_normals
+    from nefii.raycast.mesh import smooth_vertex_normals
     sphere = trimesh.creation.icosphere(subdivisions=4)
     v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
     rng = np.random.default_rng(0)

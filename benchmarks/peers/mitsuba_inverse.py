@@ -53,7 +53,7 @@ def peer_worker(data: Path, out: Path, budget_s: float, cfg: PeerConfig, eval_sp
     import torch
 
     from nefii.data import load_scene
-    from nefii.geometry import MeshGeometry
+    from nefii.raycast import MeshGeometry
     from nefii.io.atomic import write_text_atomic
     from nefii.io.exr import write_exr
     from nefii.io.images import write_png
@@ -61,7 +61,7 @@ def peer_worker(data: Path, out: Path, budget_s: float, cfg: PeerConfig, eval_sp
     from .mitsuba_peer import MitsubaPeer, atlas_mesh, camera_rig, config_record, premultiplied_images, \
         textures_at_hits
     from .peer_eval import evaluate
-    from .views import cast_test_views, hit_uv, material_scores, scatter
+    from .hits import cast_test_views, hit_uv, material_scores, scatter
 
     torch.set_num_threads(cfg.threads)
     t0 = time.perf_counter()

@@ -33,7 +33,7 @@ from nefii.io.exr import read_exr
 from nefii.synth.meshes import TriMesh
 from nefii.synth.mitsuba_backend import GL_TO_MITSUBA_CAMERA, build_mesh, envmap_emitter, import_mitsuba, principled
 
-from .views import TestViews, scatter
+from .hits import TestViews, scatter
 
 ROUGHNESS_MIN = 0.089
 """nefii's roughness floor (``0.911 sigmoid + 0.089``); the peer is held to the same range"""

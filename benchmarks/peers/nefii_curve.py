@@ -21,7 +21,7 @@ from nefii.fit.config import FitConfig, resolve_config
 from nefii.fit.model import material_at
 from nefii.fit.session import prepare_fit
 
-from .views import cast_test_views, material_scores, positions, split_views
+from .hits import cast_test_views, material_scores, positions, split_views
 
 
 @dataclass

@@ -22,7 +22,7 @@ from nefii.synth.mitsuba_backend import MitsubaRenderer
 from nefii.synth.textures import Atlas
 
 from .mitsuba_peer import PeerFit, camera_rig, textures_at_hits
-from .views import TestViews
+from .hits import TestViews
 
 RENDER_DEPTH = 12
 """path length of the novel-view renders: what the ground truth was rendered with"""

@@ -15,7 +15,7 @@ from ..export.asset import (ENVMAP_EXPORT_SIZE, BakedAsset, bake_asset, readme_t
                             write_obj)
 from ..fit.model import NeFIIModel
 from ..fit.outputs import load_run
-from ..geometry import MeshGeometry
+from ..raycast import MeshGeometry
 from ..io.atomic import write_text_atomic
 from .common import pick_device, set_threads
 

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from ..data import load_scene
 from ..data.scene import Relit
 from ..errors import InputError
-from ..evaluate.report import write_grid
+from ..evaluate.outputs import write_grid
 from ..fit.model import decode_material
 from ..fit.outputs import load_run
 from ..io.atomic import atomic_dir, write_text_atomic
@@ -33,9 +33,9 @@ from ..relight.environment import load_environment
 from ..render.brdf import Material
 from ..relight.pathtracer import PathSettings
 from ..relight.render import render_relit
-from ..relight.report import (PROTOCOL, albedo_scale_from_eval, albedo_scale_from_ground_truth, merge_metrics,
+from ..relight.scoring import (PROTOCOL, albedo_scale_from_eval, albedo_scale_from_ground_truth, merge_metrics,
                               metrics_entry, scaled_material, score_view, tone_map)
-from ..relight.views import Views, views_from_transforms
+from ..relight.cameras import Views, views_from_transforms
 from .common import pick_device, set_threads
 
 

@@ -24,7 +24,7 @@ from ..errors import InputError
 from .files import IMAGE_SUFFIXES
 from .scene import SceneData
 from .validate import check_c2w, check_K
-from .views import View, make_scene, read_views
+from .assemble import View, make_scene, read_views
 
 NAME = "colmap"
 DESCRIPTION = "sparse/0/, sparse/ or ./ with cameras.bin|txt + images.bin|txt, and images/ (COLMAP)"

@@ -15,7 +15,7 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from ..errors import InputError
-from ..geometry import MeshGeometry, Rays
+from ..raycast import MeshGeometry, Rays
 from ..render.brdf import Material
 
 

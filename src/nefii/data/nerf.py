@@ -26,7 +26,7 @@ from ..errors import InputError
 from .files import IMAGE_SUFFIXES, matrix, read_data_map, read_image, read_json, resolve_image
 from .scene import GroundTruth, Relit, SceneData
 from .validate import check_c2w, check_K, check_size
-from .views import View, make_scene, read_views
+from .assemble import View, make_scene, read_views
 
 NAME = "nerf"
 DESCRIPTION = "transforms_{split}.json with {split}/ images (nefii layout, NeRF-synthetic)"

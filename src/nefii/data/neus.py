@@ -24,7 +24,7 @@ from ..errors import InputError
 from .files import list_images, matrix, read_npz
 from .scene import SceneData
 from .validate import check_c2w, check_K
-from .views import View, make_scene, read_views
+from .assemble import View, make_scene, read_views
 
 NAME = "neus"
 DESCRIPTION = "cameras_sphere.npz or cameras.npz with image/ (NeuS, IDR)"

@@ -19,7 +19,7 @@ from ..errors import InputError
 from .files import IMAGE_SUFFIXES, matrix, read_json
 from .scene import SceneData
 from .validate import check_c2w, check_K
-from .views import View, frame_indices, make_scene, read_views
+from .assemble import View, frame_indices, make_scene, read_views
 
 NAME = "physg"
 DESCRIPTION = "cam_dict_norm.json with image/ (PhySG, NeFII, NeRF++)"

@@ -25,7 +25,7 @@ from .files import matrix, read_data_map, read_image, read_json
 from .nerf import frames_of, intrinsics
 from .scene import GroundTruth, Relit, SceneData
 from .validate import check_c2w, check_size
-from .views import View, frame_indices, make_scene, read_views
+from .assemble import View, frame_indices, make_scene, read_views
 
 NAME = "synthetic4relight"
 DESCRIPTION = "transforms_{split}.json with {split}/K_rgb.exr + K_mask.png or K_rgba.png (Synthetic4Relight)"

@@ -12,7 +12,7 @@ from ..camera import pixel_rays
 from ..data.scene import Cameras
 from ..fit.model import NeFIIModel, decode_material
 from ..fit.path_trace import SurfacePoints, Transport, path_trace
-from ..geometry.base import Geometry, Rays
+from ..raycast.base import Geometry, Rays
 
 
 @dataclass(frozen=True)

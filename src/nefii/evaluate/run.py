@@ -18,7 +18,7 @@ from ..io.atomic import atomic_dir
 from ..io.exr import write_exr
 from ..io.images import write_png
 from .render_views import render_view
-from .report import tonemap_display, write_grid, write_metrics
+from .outputs import tonemap_display, write_grid, write_metrics
 from .table1 import ViewArrays, mean_scores, view_scores
 
 

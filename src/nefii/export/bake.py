@@ -21,7 +21,7 @@ import torch
 from jaxtyping import Bool, Float, Int
 
 from ..fit.model import NeFIIModel, material_at
-from ..geometry.mesh import interpolate_normals
+from ..raycast.mesh import interpolate_normals
 from .unwrap import UVAtlas
 
 _CANDIDATES_PER_CHUNK = 1 << 21

@@ -7,10 +7,10 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
-from ..render.envmap import build_envmap_distribution, envmap_lookup
+from ..render.envmap import Environment, envmap_lookup
 from ..render.equirect import pixel_directions
 from ..render.frame import normalize
-from ..render.lights import EnvmapLightSampler, LightSampler, SGLightSampler
+from ..render.lights import LightSampler, SGLightSampler
 from ..render.sg import SGMixture, fibonacci_sphere, sg_eval, sg_to_equirect
 
 
@@ -78,7 +78,7 @@ class EnvmapEnvironment(nn.Module):
         return envmap_lookup(self.image(), w)
 
     def light_sampler(self) -> LightSampler:
-        return EnvmapLightSampler(build_envmap_distribution(self.image().detach()))
+        return Environment.from_image(self.image().detach())
 
     def to_equirect(self, height: int, width: int) -> Float[Tensor, "H W 3"]:
         d = pixel_directions(height, width, device=self.log_radiance.device)

@@ -8,8 +8,8 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..fields.features import FeatureField
-from ..geometry import MeshGeometry
-from ..geometry.base import Geometry
+from ..raycast import MeshGeometry
+from ..raycast.base import Geometry
 from .config import FitConfig
 
 MODES = ("mesh", "sdf")

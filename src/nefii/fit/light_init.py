@@ -25,7 +25,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from ..geometry.base import Geometry, spawn_rays
+from ..raycast.base import Geometry, spawn_rays
 from ..render.sg import fibonacci_sphere, sg_integral
 
 

@@ -13,7 +13,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from ..geometry.base import Geometry, Rays, SurfaceHit, spawn_rays
+from ..raycast.base import Geometry, Rays, SurfaceHit, spawn_rays
 from ..render.brdf import Material
 from ..render.estimator import (DirectionSamples, RadianceEstimate, combine, combine_pair, mean_of_pair,
                                 sample_mis_directions)

@@ -10,7 +10,7 @@ from torch import Tensor
 from ..camera import pixel_rays
 from ..data.scene import SceneData
 from ..errors import InputError
-from ..geometry.base import Geometry, Rays
+from ..raycast.base import Geometry, Rays
 from .path_trace import SurfacePoints
 
 

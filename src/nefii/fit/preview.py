@@ -8,8 +8,8 @@ import torch
 
 from ..data.scene import SceneData
 from ..evaluate.render_views import render_view
-from ..evaluate.report import tonemap_display
-from ..geometry.base import Geometry
+from ..evaluate.outputs import tonemap_display
+from ..raycast.base import Geometry
 from ..io.images import linear_to_srgb, write_png
 from .model import NeFIIModel
 from .path_trace import Transport

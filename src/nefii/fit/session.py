@@ -12,8 +12,8 @@ from torch import Tensor
 
 from ..data import load_scene
 from ..data.scene import SceneData
-from ..geometry import MeshGeometry
-from ..geometry.base import Geometry
+from ..raycast import MeshGeometry
+from ..raycast.base import Geometry
 from .build import build_model
 from .config import FitConfig
 from .distributed import DistContext

@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from ..geometry.base import Geometry
+from ..raycast.base import Geometry
 from ..io.checkpoints import save_checkpoint
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients

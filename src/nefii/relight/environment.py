@@ -20,21 +20,17 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from jaxtyping import Float
-from torch import Tensor
 
 from ..errors import InputError
 from ..io.exr import read_exr
-from ..render.envmap import EnvmapDistribution, build_envmap_distribution, envmap_lookup, pdf_envmap, sample_envmap
+from ..render.envmap import Environment
 
 ENVMAP_SUFFIXES = (".exr", ".hdr")
-SAMPLE_CHUNK_NUMBERS = 1 << 23
-"""CDF entries held at once while sampling directions (32 MiB in float32)"""
 
 
 # --------------------------------------------------------------------------- reading files
@@ -77,64 +73,6 @@ def read_envmap(path: str | Path) -> Float[np.ndarray, "H W 3"]:
         warnings.warn(f"{path}: {w}x{h} is not a 2:1 lat-long map; read in the same mapping (stretched)",
                       stacklevel=2)
     return np.ascontiguousarray(img, dtype=np.float32)
-
-
-# --------------------------------------------------------------------------- the light
-
-
-def rotate_z(w: Float[Tensor, "*bs 3"], degrees: float) -> Float[Tensor, "*bs 3"]:
-    """Turn directions about world +Z by ``degrees``, counter-clockwise seen from above."""
-    if degrees == 0.0:
-        return w
-    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
-    x, y, z = w.unbind(-1)
-    return torch.stack([c * x - s * y, s * x + c * y, z], -1)
-
-
-@dataclass(frozen=True)
-class Environment:
-    """An equirectangular map as light: radiance, importance sampling and its pdf, turned by ``rotation``.
-
-    It is also a :class:`nefii.render.lights.LightSampler` (``sample(n, u)``, ``pdf(n, wi)``; ``n``
-    is ignored), so the one-bounce estimator can use it.
-    """
-
-    image: Float[Tensor, "H W 3"]
-    """linear radiance in the map's own frame, exposure applied"""
-    dist: EnvmapDistribution
-    """piecewise-constant 2D sampling tables of ``image`` (``nefii.render.envmap``)"""
-    rotation: float = 0.0
-    """degrees about world +Z, counter-clockwise seen from above"""
-
-    @staticmethod
-    def from_image(image: Float[Tensor, "H W 3"], rotation: float = 0.0) -> "Environment":
-        return Environment(image, build_envmap_distribution(image), float(rotation))
-
-    def radiance(self, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
-        """``E(w)``: the pixel ``R_z(-rotation) w`` falls in."""
-        return envmap_lookup(self.image, rotate_z(w, -self.rotation))
-
-    def sample_direction(self, u: Float[Tensor, "*bs 2"]) -> Float[Tensor, "*bs 3"]:
-        """A world direction with density :meth:`pdf_direction` (rotations keep solid angle).
-
-        ``sample_envmap`` holds a row of each CDF per sample (``H + W`` numbers), so large maps are
-        sampled in chunks of about ``SAMPLE_CHUNK_NUMBERS / (H + W)`` directions to bound memory.
-        """
-        H, W = self.dist.shape
-        flat = u.reshape(-1, 2)
-        step = max(256, SAMPLE_CHUNK_NUMBERS // (H + W + 2))
-        w = torch.cat([sample_envmap(self.dist, c) for c in flat.split(step)]) if len(flat) else flat.new_zeros(0, 3)
-        return rotate_z(w.reshape(*u.shape[:-1], 3), self.rotation)
-
-    def pdf_direction(self, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, " *bs"]:
-        return pdf_envmap(self.dist, rotate_z(w, -self.rotation))
-
-    # LightSampler protocol (the estimator's light strategy)
-    def sample(self, n: Tensor, u: Tensor) -> Tensor:
-        return self.sample_direction(u[..., :2])
-
-    def pdf(self, n: Tensor, wi: Tensor) -> Tensor:
-        return self.pdf_direction(wi)
 
 
 def load_environment(path: str | Path, rotate: float = 0.0, exposure: float = 0.0,

@@ -34,13 +34,13 @@ import torch
 from jaxtyping import Bool, Float
 from torch import Tensor
 
-from ..geometry.base import Geometry, Rays, spawn_rays
+from ..raycast.base import Geometry, Rays, spawn_rays
 from ..render.brdf import F0_DIELECTRIC, Material, alpha_from_roughness
 from ..render.estimator import view_above_surface
 from ..render.frame import Frame, dot
 from ..render.mis import power_heuristic, power_heuristic_over_pdf
 from .bsdf import f_r, pdf_bsdf, sample_bsdf, specular_probability
-from .environment import Environment
+from ..render.envmap import Environment
 
 MaterialFn = Callable[[Float[Tensor, "B 3"], Float[Tensor, "B 3"]], Material]
 """``(x, lookup_normal) -> Material`` at world surface points, given the hits' :attr:`SurfaceHit.lookup_normal`

@@ -11,12 +11,12 @@ import math
 
 import torch
 
-from ..geometry.base import Geometry, Rays, spawn_rays
+from ..raycast.base import Geometry, Rays, spawn_rays
 from ..render.estimator import view_above_surface
 from ..render.frame import Frame, dot
 from ..render.samplers import sample_cosine
 from .bsdf import f_r
-from .environment import Environment
+from ..render.envmap import Environment
 from .pathtracer import MaterialFn, PathRadiance, PathSettings
 
 

@@ -12,9 +12,9 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
-from ..geometry.base import Geometry, Rays
+from ..raycast.base import Geometry, Rays
 from ..render.frame import normalize
-from .environment import Environment
+from ..render.envmap import Environment
 from .pathtracer import MaterialFn, PathSettings, trace_paths
 
 MAX_PATHS = 1 << 17

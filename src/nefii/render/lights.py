@@ -1,4 +1,5 @@
-"""Light-sampling strategies for the estimator: one protocol, an SG mixture and an env map behind it.
+"""Light-sampling strategies for the estimator: one protocol and the SG mixture behind it (an env map is
+:class:`nefii.render.envmap.Environment`, which is a light sampler too).
 
 A strategy draws directions at shading points with normal ``n`` and reports the density of
 any direction over solid angle; ``n`` may shape the distribution (the SG lobe choice of Eq. 6).
@@ -11,7 +12,6 @@ from typing import Protocol
 from jaxtyping import Float
 from torch import Tensor
 
-from .envmap import EnvmapDistribution, pdf_envmap, sample_envmap
 from .samplers import SG_HEMISPHERE_EPS, pdf_sg_mixture, sample_sg_mixture, sg_selection_probs
 from .sg import SGMixture
 
@@ -34,19 +34,6 @@ class SGLightSampler:
 
     def pdf(self, n: Tensor, wi: Tensor) -> Tensor:
         return pdf_sg_mixture(self.sg, sg_selection_probs(self.sg, n, self.eps).unsqueeze(-2), wi)
-
-
-@dataclass(frozen=True)
-class EnvmapLightSampler:
-    """Piecewise-constant 2D sampling of an equirectangular map (the same for every ``n``)."""
-
-    dist: EnvmapDistribution
-
-    def sample(self, n: Tensor, u: Tensor) -> Tensor:
-        return sample_envmap(self.dist, u[..., :2])
-
-    def pdf(self, n: Tensor, wi: Tensor) -> Tensor:
-        return pdf_envmap(self.dist, wi)
 
 
 def as_light_sampler(light: SGMixture | LightSampler) -> LightSampler:

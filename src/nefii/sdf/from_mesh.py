@@ -11,8 +11,8 @@ from jaxtyping import Float
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from ..geometry.base import Rays
-from ..geometry.mesh import MeshGeometry
+from ..raycast.base import Rays
+from ..raycast.mesh import MeshGeometry
 from .config import GeometryConfig
 from .losses import GeometryLoss
 from .model import NeuSModel

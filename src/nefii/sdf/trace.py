@@ -1,4 +1,4 @@
-"""Sphere tracing of a frozen SDF behind the :class:`~nefii.geometry.base.Geometry` contract (the paper's
+"""Sphere tracing of a frozen SDF behind the :class:`~nefii.raycast.base.Geometry` contract (the paper's
 way of finding first hits and secondary hits), with the SDF's feature vector f at each hit."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import torch
 from jaxtyping import Bool
 from torch import Tensor
 
-from ..geometry.base import Rays, SurfaceHit
+from ..raycast.base import Rays, SurfaceHit
 from .networks import SDFNetwork
 from .normalization import Normalization
 from .volume import sphere_bounds

@@ -19,7 +19,7 @@ import torch
 from ..camera import pixel_rays
 from ..data.scene import SceneData
 from ..evaluate.metrics import median_scale, psnr, ssim
-from ..geometry.base import Geometry, Rays
+from ..raycast.base import Geometry, Rays
 from ..io.atomic import write_text_atomic
 from ..io.images import linear_to_srgb
 from ..render.brdf import Material

@@ -13,7 +13,7 @@ from nefii.camera import pixel_rays
 from nefii.data.scene import SceneData
 from nefii.evaluate.run import eval_mask, ground_truth
 from nefii.evaluate.table1 import ViewArrays, mean_scores, view_scores
-from nefii.geometry import Geometry, Rays
+from nefii.raycast import Geometry, Rays
 from nefii.synth.meshes import TriMesh
 
 

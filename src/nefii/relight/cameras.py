@@ -10,7 +10,7 @@ import torch
 from ..data.files import read_image, read_json, resolve_image
 from ..data.nerf import frames_of, gl_pose, intrinsics
 from ..data.scene import Cameras
-from ..data.views import frame_indices
+from ..data.assemble import frame_indices
 from ..errors import InputError
 
 
