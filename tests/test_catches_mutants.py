@@ -295,6 +295,18 @@ def test_hashgrid_is_its_definition_with_the_instant_ngp_hash():
     assert h(torch.from_numpy(x[:6]).reshape(2, 3, 3)).shape == (2, 3, 6)
 
 
+def test_hashgrid_levels_sizes_and_initial_table():
+    two = HashGrid(num_levels=2, features_per_level=2, log2_table_size=6, base_resolution=4, max_resolution=16,
+                   init_scale=0.5)
+    assert two.resolution.tolist() == [4.0, 16.0]                    # growth over num_levels - 1 = 1 step
+    assert two.dense.tolist() == [False, False]                      # 5^3 = 125 > 64: hashed (3^3 would fit)
+    t = two.table.detach()
+    assert t.abs().max() <= 0.5 and t.min() < -0.25 and t.max() > 0.25   # uniform in [-init_scale, init_scale]
+    one = HashGrid(num_levels=1, features_per_level=3, log2_table_size=6, base_resolution=2, max_resolution=2)
+    assert one.resolution.tolist() == [2.0] and one.dense.tolist() == [True]
+    assert one.level_size.tolist() == [27] and one.table.shape == (27, 3)   # a dense level holds (r+1)^3 rows
+
+
 def test_fourier_features_are_sin_and_cos_of_pi_times_powers_of_two():
     x = torch.rand(5, 2, dtype=torch.float64)
     f = FourierFeatures(2, 3)
@@ -335,6 +347,8 @@ def test_material_field_scales_points_into_its_own_box_and_reads_the_features_at
     mat = field(x)
     assert torch.allclose(mat.albedo, torch.sigmoid(out[:, :3]), atol=1e-6)
     assert torch.allclose(mat.roughness, 0.911 * torch.sigmoid(out[:, 3]) + 0.089, atol=1e-6)
+    batched = field(x.reshape(2, 3, 3))                              # any batch shape
+    assert torch.allclose(batched.albedo.reshape(6, 3), mat.albedo, atol=1e-6)
     # with a normal offset the encoding reads x + offset n, the features still x itself
     sided = MaterialField(FourierFeatures(3, 2), 8, 1, (lo, hi), features=_Features(), normal_offset=0.1)
     n = torch.nn.functional.normalize(torch.randn(6, 3), dim=-1)

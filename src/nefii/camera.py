@@ -3,7 +3,7 @@ camera-to-world 4x4 matrices, intrinsics ``K`` in pixels with pixel centres at `
 from __future__ import annotations
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor
 
 from .render.frame import normalize
@@ -36,5 +36,17 @@ def pixel_rays(c2w: Float[Tensor, "4 4"], K: Float[Tensor, "3 3"], height: int,
     j, i = torch.meshgrid(torch.arange(width, dtype=dtype, device=c2w.device) + 0.5,
                           torch.arange(height, dtype=dtype, device=c2w.device) + 0.5, indexing="xy")
     d_cam = torch.stack([(j - K[0, 2]) / K[0, 0], (i - K[1, 2]) / K[1, 1], torch.ones_like(i)], -1)
+    d = normalize(d_cam @ c2w[:3, :3].T)
+    return c2w[:3, 3].expand_as(d), d
+
+
+def jittered_pixel_rays(c2w: Float[Tensor, "4 4"], K: Float[Tensor, "3 3"], width: int,
+                        pixel: Int[Tensor, " P"], u: Float[Tensor, "P 2"]) -> tuple[Float[Tensor, "P 3"], Float[Tensor, "P 3"]]:
+    """Origins and unit directions through ``(j + u0, i + u1)`` of flat pixel ``i W + j`` (OpenCV camera,
+    ``K`` in pixels): box-filtered pixels, as renderers make ground truth."""
+    c2w, K = c2w.to(u), K.to(u)
+    i, j = pixel // width, pixel % width
+    px, py = j.to(u.dtype) + u[:, 0], i.to(u.dtype) + u[:, 1]
+    d_cam = torch.stack([(px - K[0, 2]) / K[0, 0], (py - K[1, 2]) / K[1, 1], torch.ones_like(px)], -1)
     d = normalize(d_cam @ c2w[:3, :3].T)
     return c2w[:3, 3].expand_as(d), d

@@ -1,18 +1,31 @@
 """Render what a fitted model predicts for a camera: path-traced colour and its parts, the
-material, the normal and the radiance cache's own colour (its "neural rendering")."""
+material, the normal and the radiance cache's own colour (its "neural rendering").
+
+Pixels are box-filtered, as the ground truth of a renderer is (``nefii synth``'s colour and material
+layers average each pixel's jittered samples): every pixel is the mean over ``k x k`` stratified
+sub-pixel rays that hit the object, ``k`` the largest with ``k^2 <= min(spp, 16)``, each traced with
+``spp // k^2`` estimator samples. Reading the material only at pixel centres would compare a point
+sample with a pixel average, which caps even the true material at 24-30 dB albedo PSNR on the
+built-in scenes (docs/experiments.md, 2026-11-25).
+"""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 from jaxtyping import Bool, Float
 from torch import Tensor
 
-from ..camera import pixel_rays
+from ..camera import jittered_pixel_rays
 from ..data.scene import Cameras
 from ..fit.model import NeFIIModel, decode_material
 from ..fit.path_trace import SurfacePoints, Transport, path_trace
 from ..raycast.base import Geometry, Rays
+from ..render.frame import normalize
+
+MAX_SUBPIXELS = 16
+"""sub-pixel rays per pixel at most (4 x 4)"""
 
 
 @dataclass(frozen=True)
@@ -20,7 +33,7 @@ class ViewPrediction:
     """One view; linear values; object quantities are 0 outside ``mask``."""
 
     rgb: Float[Tensor, "H W 3"]
-    """path-traced colour (Eq. 2-4), the environment where the view ray escapes"""
+    """path-traced colour (Eq. 2-4) on the object, the environment where the view ray escapes"""
     specular: Float[Tensor, "H W 3"]
     """the specular lobe's share of ``rgb`` on the object"""
     diffuse: Float[Tensor, "H W 3"]
@@ -28,36 +41,60 @@ class ViewPrediction:
     roughness: Float[Tensor, "H W"]
     normal: Float[Tensor, "H W 3"]
     cache: Float[Tensor, "H W 3"]
-    """the radiance cache's L(x, n, wo) at the first hit"""
+    """the radiance cache's L(x, n, wo) at the first hits"""
     mask: Bool[Tensor, "H W"]
-    """where the view ray hits the geometry"""
+    """where at least half the pixel's sub-pixel rays hit the geometry"""
+
+
+def subpixel_grid(spp: int) -> int:
+    """``k``: the pixel is sampled by ``k x k`` strata."""
+    return max(1, math.isqrt(min(max(spp, 1), MAX_SUBPIXELS)))
 
 
 @torch.no_grad()
 def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: int, num_samples: int,
-                generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 2048
+                generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 4096
                 ) -> ViewPrediction:
+    """``num_samples`` estimator samples per pixel, spread over its sub-pixel rays (a single ray through the
+    pixel centre when ``num_samples < 4``)."""
     H, W = cameras.height, cameras.width
     device = next(model.parameters()).device
-    o, d = pixel_rays(cameras.c2w[view].cpu(), cameras.K[view].cpu(), H, W)
-    o, d = o.reshape(-1, 3).float().to(device), d.reshape(-1, 3).float().to(device)
+    k = subpixel_grid(num_samples)
+    per_ray = max(1, num_samples // (k * k))
+    n_px = H * W
+    pixel = torch.arange(n_px, device=device).repeat_interleave(k * k)
+    if k == 1:
+        u = torch.full((n_px, 2), 0.5, dtype=torch.float64, device=device)
+    else:  # stratified: one uniform point in each of the k x k cells
+        cell = torch.arange(k * k, device=device).repeat(n_px)
+        jitter = torch.rand(len(pixel), 2, generator=generator, device=device, dtype=torch.float32).double()
+        u = (torch.stack([cell % k, cell // k], -1).double() + jitter) / k
+    o, d = jittered_pixel_rays(cameras.c2w[view].to(device), cameras.K[view].to(device), W, pixel, u)
+    o, d = o.float(), d.float()
     hit = geometry.intersect(Rays(o, d))
     idx = hit.valid.nonzero().squeeze(-1)
-    n_px = H * W
-    rgb = model.env.radiance(d)
-    out = {k: torch.zeros(n_px, 3, device=device) for k in ("specular", "diffuse", "albedo", "normal", "cache")}
+    sums = {name: torch.zeros(n_px, 3, device=device) for name in ("rgb", "specular", "diffuse", "albedo", "normal",
+                                                                 "cache")}
     rough = torch.zeros(n_px, device=device)
     for c in idx.split(chunk):
         pts = SurfacePoints.from_hit(hit, c, -d[c])
         material = decode_material(model, pts.position, pts.lookup_normal)
-        traced = path_trace(model, geometry, pts, material, num_samples, generator, transport)
-        rgb[c] = traced.radiance.rgb
-        out["specular"][c] = traced.radiance.specular
-        out["diffuse"][c] = traced.radiance.diffuse
-        out["albedo"][c] = material.albedo
-        rough[c] = material.roughness
-        out["normal"][c] = pts.normal
-        out["cache"][c] = model.cache(pts.position, pts.normal, pts.wo)
+        traced = path_trace(model, geometry, pts, material, per_ray, generator, transport)
+        px = pixel[c]
+        for name, value in (("rgb", traced.radiance.rgb), ("specular", traced.radiance.specular),
+                            ("diffuse", traced.radiance.diffuse), ("albedo", material.albedo),
+                            ("normal", pts.normal), ("cache", model.cache(pts.position, pts.normal, pts.wo))):
+            sums[name].index_add_(0, px, value)
+        rough.index_add_(0, px, material.roughness)
+    hits = torch.zeros(n_px, device=device).index_add_(0, pixel, hit.valid.float())
+    inv = 1.0 / hits.clamp_min(1.0)
+    mean = {name: v * inv.unsqueeze(-1) for name, v in sums.items()}
+    on = hits > 0
+    centre_dirs = d.reshape(n_px, k * k, 3).mean(1)
+    rgb = torch.where(on.unsqueeze(-1), mean["rgb"], model.env.radiance(normalize(centre_dirs)))
     shape3 = (H, W, 3)
-    return ViewPrediction(rgb=rgb.reshape(shape3), roughness=rough.reshape(H, W), mask=hit.valid.reshape(H, W),
-                          **{k: v.reshape(shape3) for k, v in out.items()})
+    return ViewPrediction(rgb=rgb.reshape(shape3), specular=mean["specular"].reshape(shape3),
+                          diffuse=mean["diffuse"].reshape(shape3), albedo=mean["albedo"].reshape(shape3),
+                          roughness=(rough * inv).reshape(H, W),
+                          normal=torch.where(on.unsqueeze(-1), normalize(mean["normal"]), mean["normal"]).reshape(shape3),
+                          cache=mean["cache"].reshape(shape3), mask=(hits >= 0.5 * k * k).reshape(H, W))

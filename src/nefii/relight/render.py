@@ -9,11 +9,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from jaxtyping import Float, Int
+from jaxtyping import Float
 from torch import Tensor
 
+from ..camera import jittered_pixel_rays
 from ..raycast.base import Geometry, Rays
-from ..render.frame import normalize
 from ..render.envmap import Environment
 from .pathtracer import MaterialFn, PathSettings, trace_paths
 
@@ -34,17 +34,6 @@ class RelitImage:
         return self.rgb * self.coverage.unsqueeze(-1)
 
 
-def jittered_pixel_rays(c2w: Float[Tensor, "4 4"], K: Float[Tensor, "3 3"], width: int,
-                        pixel: Int[Tensor, " P"], u: Float[Tensor, "P 2"]) -> Rays:
-    """Rays through ``(j + u0, i + u1)`` of flat pixel ``i W + j`` (OpenCV camera, ``K`` in pixels)."""
-    c2w, K = c2w.to(u), K.to(u)
-    i, j = pixel // width, pixel % width
-    px, py = j.to(u.dtype) + u[:, 0], i.to(u.dtype) + u[:, 1]
-    d_cam = torch.stack([(px - K[0, 2]) / K[0, 0], (py - K[1, 2]) / K[1, 1], torch.ones_like(px)], -1)
-    d = normalize(d_cam @ c2w[:3, :3].T)
-    return Rays(c2w[:3, 3].expand_as(d), d)
-
-
 @torch.no_grad()
 def render_relit(geometry: Geometry, material: MaterialFn, env: Environment, c2w: Float[Tensor, "4 4"],
                  K: Float[Tensor, "3 3"], height: int, width: int, spp: int, generator: torch.Generator | None,
@@ -61,8 +50,8 @@ def render_relit(geometry: Geometry, material: MaterialFn, env: Environment, c2w
         path = torch.arange(start, min(start + max_paths, n_px * spp), device=dev)
         pixel = path // spp
         u = torch.rand(len(path), 2, generator=generator, device=dev, dtype=torch.float32)
-        rays = jittered_pixel_rays(c2w.to(dev), K.to(dev), width, pixel, u.double())
-        out = trace_paths(Rays(rays.origins.float(), rays.directions.float()), geometry, material, env,
+        o, d = jittered_pixel_rays(c2w.to(dev), K.to(dev), width, pixel, u.double())
+        out = trace_paths(Rays(o.float(), d.float()), geometry, material, env,
                           generator, settings)
         total.index_add_(0, pixel, out.radiance)
         hits.index_add_(0, pixel, out.hit.float())

@@ -1,0 +1,46 @@
+"""Eval's pixels are box-filtered like a renderer's ground truth: stripes finer than a pixel average out."""
+import numpy as np
+import torch
+from torch import nn
+
+from nefii.camera import intrinsics_from_fov, look_at
+from nefii.data.scene import Cameras
+from nefii.evaluate.render_views import render_view, subpixel_grid
+from nefii.fit.build import build_model
+from nefii.fit.config import resolve_config
+from nefii.raycast import MeshGeometry
+from nefii.render.brdf import Material
+
+
+class Stripes(nn.Module):
+    """Albedo 1 where ``frac(x / period) < 0.5``, else 0 (grey-free), roughness 0.5."""
+
+    def __init__(self, period: float) -> None:
+        super().__init__()
+        self.period = period
+        self.dummy = nn.Parameter(torch.zeros(1))
+
+    def forward(self, x, normal=None, roughness_override=None):
+        on = (torch.remainder(x[..., 0] / self.period, 1.0) < 0.5).float()
+        return Material(on.unsqueeze(-1).expand(*on.shape, 3), torch.full_like(on, 0.5))
+
+
+def test_eval_averages_the_material_over_each_pixel():
+    plane = MeshGeometry(np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
+    res = 16
+    c2w = look_at(torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
+                  torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    K = intrinsics_from_fov(np.radians(20.0), res, res)
+    pixel_width = 2 * 5.0 * np.tan(np.radians(10.0)) / res                 # on the plane, about 0.11
+    box = tuple(torch.from_numpy(b.copy()) for b in plane.bounds)
+    model = build_model(resolve_config("tiny", []), box)
+    model.material = Stripes(period=pixel_width / 5.3)                     # 5.3 stripes per pixel
+    cams = Cameras(K.unsqueeze(0), c2w.unsqueeze(0), res, res)
+    assert subpixel_grid(64) == 4 and subpixel_grid(1) == 1
+    point = render_view(model, plane, cams, 0, 1, torch.Generator().manual_seed(0)).albedo[..., 0]
+    filtered = render_view(model, plane, cams, 0, 64, torch.Generator().manual_seed(0)).albedo[..., 0]
+    # a point sample is 0 or 1; the pixel average of 5.3 stripes is near their duty cycle 0.5
+    assert set(point.unique().tolist()) <= {0.0, 1.0}
+    assert (point - 0.5).abs().mean() > 0.45
+    assert (filtered - 0.5).abs().max() <= 0.3 and (filtered - 0.5).abs().mean() < 0.12
+    assert abs(float(filtered.mean()) - 0.5) < 0.03
