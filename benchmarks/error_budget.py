@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from nefii.camera import pixel_rays
+from nefii.camera import jittered_pixel_rays, pixel_rays
 from nefii.data import load_scene
 from nefii.data.material import MaterialOnMesh, load_material
 from nefii.evaluate.run import eval_mask, evaluate_run, ground_truth
@@ -48,7 +48,7 @@ from nefii.fit.model import NeFIIModel, decode_material
 from nefii.fit.outputs import FittedRun
 from nefii.fit.session import prepare_fit
 from nefii.fit.trainer import Trainer
-from nefii.raycast import Rays
+from nefii.raycast import MeshGeometry, Rays
 from nefii.relight.environment import load_environment
 from nefii.render.envmap import Environment
 from nefii.relight.pathtracer import PathSettings, trace_paths
@@ -185,14 +185,17 @@ def constant_scores(scene) -> dict:
     return mean_scores(views)["masked"]
 
 
+def true_scene(data: Path):
+    """The test split, its mesh and the true material on it."""
+    scene = load_scene(data, "test")
+    mesh = MeshGeometry.from_file(scene.mesh_path)
+    return scene, mesh, MaterialOnMesh(load_material(data), mesh)
+
+
 @torch.no_grad()
 def truth_scores(data: Path, subpixels: int, seed: int) -> dict:
     """The true material at the test views, point-sampled (``subpixels`` 1) or box-filtered."""
-    from nefii.camera import jittered_pixel_rays
-    from nefii.raycast import MeshGeometry
-    scene = load_scene(data, "test")
-    mesh = MeshGeometry.from_file(scene.mesh_path)
-    truth_material = MaterialOnMesh(load_material(data), mesh)
+    scene, mesh, truth_material = true_scene(data)
     H, W = scene.height, scene.width
     g = torch.Generator().manual_seed(seed)
     views = []
@@ -216,10 +219,7 @@ def truth_scores(data: Path, subpixels: int, seed: int) -> dict:
 
 @torch.no_grad()
 def floor_scores(data: Path, spp: int, seed: int) -> dict:
-    scene = load_scene(data, "test")
-    from nefii.raycast import MeshGeometry
-    mesh = MeshGeometry.from_file(scene.mesh_path)
-    truth_material = MaterialOnMesh(load_material(data), mesh)
+    scene, mesh, truth_material = true_scene(data)
     env = load_environment(data / "envmap.exr")
     g = torch.Generator().manual_seed(seed)
     views = []
@@ -288,7 +288,7 @@ def drift_figures(model: NeFIIModel, scene, geometry) -> dict:
 
 # --------------------------------------------------------------------------- table
 
-def table(runs: Path) -> None:
+def table(runs: Path, where: str) -> None:
     found: dict[tuple[str, str], list[dict]] = {}
     for f in sorted(runs.glob("*/*/scores.json")):
         blob = json.loads(f.read_text())
@@ -303,7 +303,8 @@ def table(runs: Path) -> None:
         return (fmt.format(m) + (f" ± {fmt.format(np.ptp(vals) / 2)}" if len(vals) > 1 else "")) + \
             ("" if len(vals) > 1 else " (1 seed)")
 
-    lines = [f"# error_budget ({stamp()}, code {code_version()})", "", f"Machine: {machine()}", "",
+    lines = [f"# error_budget ({stamp()}, code {code_version()})", "", f"Table written on: {machine()}. "
+             f"Runs: {where or 'here'}.", "",
              "The `cpu` preset on ground-truth geometry with one unknown replaced by the truth at a time "
              "(benchmarks/error_budget.py). Mean of the seeds ± half their spread; masked test views. "
              "Albedo aligned per view and channel as eval does. The fit rows were scored when eval read the "
@@ -340,9 +341,10 @@ def main() -> None:
     r.add_argument("--device", default="cpu")
     t = sub.add_parser("table")
     t.add_argument("runs", type=Path)
+    t.add_argument("--where", default="", help="where and how the runs ran, for the record")
     args = ap.parse_args()
     if args.cmd == "table":
-        table(args.runs)
+        table(args.runs, args.where)
         return
     torch.set_num_threads(args.threads)
     out = args.out / args.data.name / f"{args.row}_s{args.seed}"

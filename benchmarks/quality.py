@@ -61,6 +61,26 @@ def run_one(data: Path, name: str, config: str, extra: list[str], threads: int, 
                        check=True, capture_output=True)
 
 
+def relight_one(data: Path, name: str, spp: int) -> None:
+    """``nefii relight`` of the scene's full-model run under each of its relighting environments."""
+    run = run_dir(name, "full")
+    for env in sorted((data / "relight").glob("*.exr")):
+        done = run / "relight" / "metrics.json"
+        if done.exists() and env.stem in json.loads(done.read_text()):
+            continue
+        subprocess.run([sys.executable, "-m", "nefii.cli.main", "relight", str(run), "--envmap", str(env), "--spp",
+                        str(spp), "--quiet"], check=True, capture_output=True)
+
+
+def relight_rows(name: str) -> list[str]:
+    path = run_dir(name, "full") / "relight" / "metrics.json"
+    if not path.exists():
+        return []
+    blob = json.loads(path.read_text())
+    return [f"| {name} | {env} | {e['psnr']:.2f} | {e['ssim']:.4f} | {'met' if e['psnr'] >= 26 else 'NOT met'} |"
+            for env, e in sorted(blob.items()) if isinstance(e, dict) and e.get("psnr") is not None]
+
+
 def read_row(name: str, config: str) -> dict | None:
     """The completed run's figures, or None."""
     run = run_dir(name, config)
@@ -106,6 +126,7 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--threads", type=int, default=None, help="threads per fit (default: 1 with --jobs > 1, else all)")
     ap.add_argument("--set", dest="extra", action="append", default=[])
+    ap.add_argument("--relight-spp", type=int, default=32, help="paths per pixel of the relighting (0: skip it)")
     args = ap.parse_args()
     datas = {s: scene(s, args.res, args.views, args.test_views) for s in args.scenes}
     threads = args.threads if args.threads is not None else (1 if args.jobs > 1 else 0)
@@ -113,6 +134,8 @@ def main() -> None:
     t0 = time.time()
     with ThreadPoolExecutor(args.jobs) as pool:
         list(pool.map(lambda j: run_one(*j, args.extra, threads, args.eval_spp), jobs))
+        if args.relight_spp > 0 and "full" in args.configs:
+            list(pool.map(lambda s: relight_one(datas[s], s, args.relight_spp), args.scenes))
     order = list(dict.fromkeys([*SCENES, *args.scenes]))
     found = {(s, c): read_row(s, c) for s in order for c in CONFIGS}
     rows = [r for r in found.values() if r is not None]
@@ -139,6 +162,14 @@ def main() -> None:
     if missing:
         lines += ["", "Not run yet: " + ", ".join(missing) + "."]
     write_results("quality.md", lines)
+    relit = [row for s in order for row in relight_rows(s)]
+    if relit:
+        write_results("relight.md", [
+            f"# relight ({stamp()})", "", f"Machine: {machine()}. `nefii relight` of each scene's `full` run of "
+            f"quality.md (fitted under its training light) under the scene's relighting environments, test views, "
+            f"{args.relight_spp} spp, 8 bounces; object pixels, sRGB clipped, albedo scaled by eval's alignment. "
+            f"Target: >= 26 dB masked PSNR.", "", "| scene | environment | PSNR | SSIM | target |", "|---|---|---|---|---|",
+            *relit])
 
 
 if __name__ == "__main__":
