@@ -17,7 +17,7 @@ from nefii.fields.material import MaterialField
 from nefii.fields.mlp import mlp
 from nefii.render.brdf import F_schlick
 from nefii.render.envmap import envmap_lookup
-from nefii.fit.losses import SecondaryHitBuffer, distance, pair_distance, render_distance
+from nefii.fit.losses import SecondaryHitBuffer, distance, render_distance
 from nefii.fit import losses
 from nefii.io.checkpoints import latest_checkpoint, save_checkpoint
 

@@ -43,7 +43,7 @@ class GeometryConfig:
     SparseNeuS's sparseness loss): where no view constrains the surface (the underside of an object
     standing on something, seen only from above) it spans the observed edges by the smallest
     surface instead of keeping the initial sphere. Too strong, it lids hollows the views look into
-    (the bowl at 0.3; see docs/design.md)"""
+    (the bowl at 0.3; see src/nefii/sdf/design.md)"""
     area_sharpness: float = 50.0
     """``tau`` of the minimal-surface prior, in 1 / normalised units"""
     area_points: int = 2048
