@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from nefii.camera import pixel_rays
+from nefii.data.material import barycentrics
 from nefii.data.scene import SceneData
 from nefii.evaluate.run import eval_mask, ground_truth
 from nefii.evaluate.table1 import ViewArrays, mean_scores, view_scores
@@ -57,13 +58,8 @@ def hit_uv(hits: ViewHits, mesh: TriMesh) -> np.ndarray:
     """Atlas UV ``(M, 2)`` of each hit: its barycentrics in its triangle (triangle ``k`` of the cast mesh is
     ``mesh.faces[k]``, the mesh split at the atlas seams) applied to the corners' UVs."""
     corners = mesh.faces[hits.triangle]
-    a, b, c = (mesh.vertices[corners[:, k]].astype(np.float64) for k in range(3))
-    e1, e2, q = b - a, c - a, hits.position - a
-    d11, d12, d22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
-    q1, q2 = (q * e1).sum(-1), (q * e2).sum(-1)
-    det = np.maximum(d11 * d22 - d12 * d12, 1e-300)
-    w1, w2 = (d22 * q1 - d12 * q2) / det, (d11 * q2 - d12 * q1) / det
-    w = np.stack([1.0 - w1 - w2, w1, w2], -1)
+    w = barycentrics(torch.from_numpy(mesh.vertices[corners].astype(np.float64)),
+                     torch.from_numpy(hits.position.astype(np.float64))).numpy()
     return np.einsum("mk,mkc->mc", w, mesh.uv[corners])
 
 

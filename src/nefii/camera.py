@@ -32,12 +32,10 @@ def intrinsics_from_fov(fov_x: float, width: int, height: int) -> Float[Tensor, 
 def pixel_rays(c2w: Float[Tensor, "4 4"], K: Float[Tensor, "3 3"], height: int,
                width: int) -> tuple[Float[Tensor, "H W 3"], Float[Tensor, "H W 3"]]:
     """Origins and unit directions through the centre of every pixel (OpenCV convention)."""
-    dtype = c2w.dtype
-    j, i = torch.meshgrid(torch.arange(width, dtype=dtype, device=c2w.device) + 0.5,
-                          torch.arange(height, dtype=dtype, device=c2w.device) + 0.5, indexing="xy")
-    d_cam = torch.stack([(j - K[0, 2]) / K[0, 0], (i - K[1, 2]) / K[1, 1], torch.ones_like(i)], -1)
-    d = normalize(d_cam @ c2w[:3, :3].T)
-    return c2w[:3, 3].expand_as(d), d
+    pixel = torch.arange(height * width, device=c2w.device)
+    o, d = jittered_pixel_rays(c2w, K, width, pixel, torch.full((height * width, 2), 0.5, dtype=c2w.dtype,
+                                                                device=c2w.device))
+    return o.reshape(height, width, 3), d.reshape(height, width, 3)
 
 
 def jittered_pixel_rays(c2w: Float[Tensor, "4 4"], K: Float[Tensor, "3 3"], width: int,

@@ -7,7 +7,6 @@ import resource
 import time
 from pathlib import Path
 
-
 from ..errors import InputError
 from ..fit.config import PRESETS, FitConfig, resolve_config
 from ..fit.distributed import DistContext, init_distributed, local_device, parameter_checksums, shutdown
