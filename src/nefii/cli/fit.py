@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import sys
 import time
 from pathlib import Path
 
@@ -16,7 +17,8 @@ from ..fit.preview import write_preview
 from ..fit.session import prepare_fit
 from ..fit.trainer import NonFiniteLoss
 from ..io.atomic import write_text_atomic
-from ..io.checkpoints import latest_checkpoint
+from ..io.checkpoints import LoadedCheckpoint, latest_checkpoint, list_checkpoints, load_latest_checkpoint
+from ..run_folder import RunManifest, write_manifest, writing_run
 from .common import pick_device, set_threads
 
 
@@ -41,45 +43,74 @@ def fit_config(args: argparse.Namespace) -> FitConfig:
         cfg = resolve_config(args.preset, args.overrides)
     except (KeyError, ValueError) as e:
         raise InputError(None, f"bad configuration: {e.args[0] if e.args else e}") from None
-    if args.resume and (args.out / "config.json").is_file():
-        saved = read_config(args.out)
-        if args.overrides or args.preset != saved.preset:
-            print("nefii fit: --resume continues with the run's own config.json; --preset/--set are ignored")
-        cfg = saved
     return cfg
 
 
+def resumed_config(args: argparse.Namespace, cfg: FitConfig) -> FitConfig:
+    """On ``--resume``, the run's own ``config.json`` (once the folder is known to be a fit run)."""
+    if not args.resume or not (args.out / "config.json").is_file():
+        return cfg
+    saved = read_config(args.out)
+    if args.overrides or args.preset != saved.preset:
+        print("nefii fit: --resume continues with the run's own config.json; --preset/--set are ignored")
+    return saved
+
+
 def run(args: argparse.Namespace) -> int:
-    out: Path = args.out
-    if not args.resume and (out / "checkpoints").exists():
-        raise InputError(out, "already holds a run: use --resume to continue it, or another --out")
     cfg = fit_config(args)
-    ctx = init_distributed(pick_device(args.device))
+    device = pick_device(args.device)
+    ctx = init_distributed(device)
     try:
-        return _fit(args, cfg, ctx)
+        if not ctx.is_main:                 # rank 0 alone holds the folder and writes it
+            return _fit(args, cfg, ctx, None)
+        with writing_run(args.out, "fit", args.resume, warn=_warn) as manifest:
+            return _fit(args, cfg, ctx, manifest)
     finally:
         shutdown(ctx)
 
 
-def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
+def _warn(line: str) -> None:
+    print(f"nefii fit: warning: {line}", file=sys.stderr)
+
+
+def _resume_point(args: argparse.Namespace, manifest: RunManifest | None) -> LoadedCheckpoint | None:
+    """The newest checkpoint of ``--out`` that loads (None: a run that failed before its first one)."""
+    ckpt_dir = args.out / "checkpoints"
+    if manifest is None:
+        raise InputError(args.out, "no run to resume here")
+    found = load_latest_checkpoint(ckpt_dir, warn=_warn)
+    if found is None:
+        if list_checkpoints(ckpt_dir):
+            raise InputError(ckpt_dir, "no checkpoint in it loads (all truncated or corrupt): start a new run")
+        print("nefii fit: the run wrote no checkpoint before it stopped: starting from the first step")
+    return found
+
+
+def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: RunManifest | None) -> int:
     out: Path = args.out
+    cfg = resumed_config(args, cfg)
     device = local_device(pick_device(args.device), ctx)
     threads = set_threads(cfg.threads)
     say = print if ctx.is_main else (lambda *a, **k: None)
     checkpoint = None
     if args.resume:
-        checkpoint = latest_checkpoint(out / "checkpoints")
-        if checkpoint is None:
-            raise InputError(out / "checkpoints", "no checkpoint to resume from")
+        if ctx.is_main:
+            checkpoint = _resume_point(args, manifest)
+        else:   # the other ranks read the same file rank 0 chose
+            checkpoint = load_latest_checkpoint(out / "checkpoints")
+    recorded = None if manifest is None or manifest.data is None or checkpoint is None else (out, manifest.data)
     say(f"nefii fit: device {device}, {threads} threads" + (f", {ctx.world_size} processes" if ctx.active else ""))
     session = prepare_fit(cfg, args.data, mesh=args.mesh, geometry_dir=args.geometry, device=device, dist=ctx,
-                          checkpoint=checkpoint, say=lambda line: say(f"nefii fit: {line}"))
+                          checkpoint=checkpoint, resume_of=recorded, say=lambda line: say(f"nefii fit: {line}"))
     cfg, trainer, ckpt_dir = session.config, session.trainer, out / "checkpoints"
     logger = None
     if ctx.is_main:
         out.mkdir(parents=True, exist_ok=True)
+        write_manifest(out, RunManifest("fit", session.data))
         ckpt_dir.mkdir(exist_ok=True)
         write_config(out, cfg)
+        if checkpoint is None:              # a fresh start: the log of a run that failed before is not this one's
+            (out / "log.csv").unlink(missing_ok=True)
         logger = RunLogger(out, cfg)
     t0, step0 = time.time(), trainer.step
 
@@ -90,7 +121,10 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> int:
     try:
         trainer.fit(ckpt_dir, log=logger, progress=not args.quiet, preview=preview)
     except NonFiniteLoss as e:
-        say(f"nefii fit: error: {e}; the last good checkpoint is in {ckpt_dir}")
+        last = latest_checkpoint(ckpt_dir)
+        where = (f"the last good checkpoint is {last} (--resume continues from it)" if last is not None else
+                 "no checkpoint was written: run the same command again to start over")
+        say(f"nefii fit: error: {e}; {where}")
         return 1
     finally:
         if logger is not None:

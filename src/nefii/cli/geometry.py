@@ -6,14 +6,19 @@ import argparse
 import dataclasses
 import json
 import resource
+import sys
 import time
 from pathlib import Path
 
+import torch
 import trimesh
 
 from ..data import load_scene
+from ..data.fingerprint import fingerprint, require_same
 from ..errors import InputError
 from ..io.atomic import atomic_path, write_text_atomic
+from ..io.checkpoints import latest_checkpoint, list_checkpoints, load_latest_checkpoint
+from ..run_folder import RunManifest, write_manifest, writing_run
 from ..sdf.config import GEOMETRY_PRESETS, GeometryConfig, resolve_geometry_config
 from ..sdf.extract import extract_mesh
 from ..sdf.from_mesh import MeshObjective, mesh_signed_distances
@@ -48,6 +53,14 @@ def _config(args: argparse.Namespace) -> GeometryConfig:
         raise InputError(None, f"bad configuration: {e.args[0] if e.args else e}") from None
 
 
+def _read_config(path: Path) -> GeometryConfig:
+    from ..sdf.config import geometry_config_from_dict
+    try:
+        return geometry_config_from_dict(json.loads(path.read_text()))
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise InputError(path, f"not a valid nefii geometry config ({type(e).__name__}: {e})") from None
+
+
 def _load_mesh(path: Path) -> trimesh.Trimesh:
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
@@ -59,15 +72,30 @@ def _load_mesh(path: Path) -> trimesh.Trimesh:
 
 
 def run(args: argparse.Namespace) -> int:
+    cfg = _config(args)
+    device = pick_device(args.device)
+    with writing_run(args.out, "geometry", args.resume, warn=_warn) as manifest:
+        return _geometry(args, cfg, device, manifest)
+
+
+def _warn(line: str) -> None:
+    print(f"nefii geometry: warning: {line}", file=sys.stderr)
+
+
+def _geometry(args: argparse.Namespace, cfg: GeometryConfig, device: torch.device, manifest: RunManifest | None) -> int:
     out: Path = args.out
     ckpt = out / "checkpoints"
-    if not args.resume and ckpt.exists():
-        raise InputError(out, "already holds a geometry run: use --resume to continue it, or another --out")
-    cfg = _config(args)
-    if args.resume and (out / "config.json").is_file():
-        from ..sdf.config import geometry_config_from_dict
-        cfg = geometry_config_from_dict(json.loads((out / "config.json").read_text()))
-    device = pick_device(args.device)
+    checkpoint = None
+    if args.resume:
+        if manifest is None:
+            raise InputError(out, "no geometry run to resume here")
+        if (out / "config.json").is_file():
+            cfg = _read_config(out / "config.json")
+        checkpoint = load_latest_checkpoint(ckpt, warn=_warn)
+        if checkpoint is None and list_checkpoints(ckpt):
+            raise InputError(ckpt, "no checkpoint in it loads (all truncated or corrupt): start a new run")
+        if checkpoint is None:
+            print("nefii geometry: the run wrote no checkpoint before it stopped: starting from the first step")
     threads = set_threads(cfg.threads)
     scene = load_scene(args.data, "train")
     t0 = time.time()
@@ -92,18 +120,24 @@ def run(args: argparse.Namespace) -> int:
         print(f"nefii geometry: NeuS on {len(scene)} views {scene.width}x{scene.height} from {scene.root}, "
               f"{'with masks' if masks is not None else 'no masks: NeRF++ background'}; unit sphere centre "
               f"{tuple(round(c, 4) for c in norm.center)}, radius {norm.radius:.4f}; device {device}, {threads} threads")
+    data_print = fingerprint(scene, args.from_mesh)
+    if checkpoint is not None and manifest is not None and manifest.data is not None:
+        require_same(manifest.data, data_print, out)
     trainer = GeometryTrainer(cfg, model, objective, device)
-    if args.resume:
-        if not trainer.resume(ckpt):
-            raise InputError(ckpt, "no checkpoint to resume from")
-        print(f"nefii geometry: resumed at step {trainer.step}")
+    if checkpoint is not None:
+        trainer.resume(checkpoint)
+        print(f"nefii geometry: resumed from {checkpoint.path} at step {trainer.step}")
     step0 = trainer.step
     out.mkdir(parents=True, exist_ok=True)
+    write_manifest(out, RunManifest("geometry", data_print))
     write_text_atomic(out / "config.json", json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
     try:
         trainer.fit(ckpt, progress=not args.quiet)
     except FloatingPointError as e:
-        print(f"nefii geometry: error: {e}; the last good checkpoint is in {ckpt}")
+        last = latest_checkpoint(ckpt)
+        where = (f"the last good checkpoint is {last} (--resume continues from it)" if last is not None else
+                 "no checkpoint was written: run the same command again to start over")
+        print(f"nefii geometry: error: {e}; {where}")
         return 1
     save_sdf(out, cfg, model.sdf, norm, source)
     try:

@@ -24,6 +24,7 @@ from ..io.atomic import atomic_path, write_text_atomic
 from ..fields.environment import SGEnvironment
 from ..fields.features import FeatureField
 from ..io.exr import write_exr
+from ..io.safe_load import load_tensors
 from ..render.sg import SGMixture
 from .build import build_model, make_encoding
 from .config import FitConfig, config_from_dict, config_to_dict
@@ -91,8 +92,8 @@ def load_run(folder: str | Path, device: torch.device | str = "cpu") -> FittedRu
     path = folder / "model.pt"
     if not path.is_file():
         raise InputError(path, "not found: has `nefii fit` finished in this folder?")
+    blob = load_tensors(path)
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=False)
         cfg = config_from_dict(blob["config"])
         features = None
         if blob.get("sdf") is not None:

@@ -11,7 +11,10 @@ import torch
 from torch import Tensor
 
 from ..data import load_scene
+from ..data.fingerprint import DataFingerprint, fingerprint, require_same
 from ..data.scene import SceneData
+from ..errors import InputError
+from ..io.checkpoints import LoadedCheckpoint
 from ..raycast import MeshGeometry
 from ..raycast.base import Geometry
 from .build import build_model
@@ -38,6 +41,8 @@ class FitSession:
     """corners of the geometry's bounding box (CPU)"""
     pixels: Pixels
     trainer: Trainer
+    data: DataFingerprint
+    """what the fit is on (the run's manifest records it)"""
 
     @property
     def model(self) -> NeFIIModel:
@@ -71,14 +76,19 @@ def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg:
 
 def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometry_dir: Path | None = None,
                 device: torch.device = torch.device("cpu"), dist: DistContext = DistContext(),
-                checkpoint: Path | None = None, say: Callable[[str], None] = lambda s: None) -> FitSession:
+                checkpoint: LoadedCheckpoint | None = None,
+                resume_of: tuple[Path, DataFingerprint] | None = None, say: Callable[[str], None] = lambda s: None) -> FitSession:
     """The fit of ``data`` (any format nefii reads) on ``mesh``, ``geometry_dir`` (the output of ``nefii
     geometry``) or the dataset's own mesh, ready to train: first hits cast, model built, light initialised,
-    or, with ``checkpoint``, the training state loaded from it. ``say`` gets one line per stage."""
+    or, with ``checkpoint`` (:func:`nefii.io.checkpoints.load_latest_checkpoint`), the training state in it. ``resume_of`` (the run folder and the data in its manifest) refuses
+    data other than that before anything is trained. ``say`` gets one line per stage."""
     scene = load_scene(data, "train")
     source = resolve_source(mesh, geometry_dir, scene.mesh_path, cfg.geometry_mode, data)
     cfg, source = adapt_to_source(cfg, source)
     geometry, features = source.open()
+    data_print = fingerprint(scene, source.mesh)
+    if resume_of is not None:
+        require_same(resume_of[1], data_print, resume_of[0])
     box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
     say(f"{len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
         f"{describe_geometry(source, geometry, cfg, features.dim if features else 0)}")
@@ -91,6 +101,10 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
             say(f"lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
     trainer = Trainer(cfg, model, geometry, pixels, device, dist)
     if checkpoint is not None:
-        trainer.load_state_dict(torch.load(checkpoint, map_location=device, weights_only=False))
-        say(f"resumed from {checkpoint} at step {trainer.step}")
-    return FitSession(cfg, scene, source, geometry, box, pixels, trainer)
+        try:
+            trainer.load_state_dict(checkpoint.state)
+        except (KeyError, RuntimeError, TypeError, ValueError) as e:
+            raise InputError(checkpoint.path, f"does not fit this run's model ({type(e).__name__}: "
+                                              f"{str(e).splitlines()[0][:160]})") from None
+        say(f"resumed from {checkpoint.path} at step {trainer.step}")
+    return FitSession(cfg, scene, source, geometry, box, pixels, trainer, data_print)

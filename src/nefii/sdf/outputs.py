@@ -10,6 +10,7 @@ import torch
 from ..errors import InputError
 from ..fit.build import make_encoding
 from ..io.atomic import atomic_path
+from ..io.safe_load import load_tensors
 from .config import GeometryConfig, geometry_config_from_dict
 from .networks import SDFNetwork
 from .normalization import Normalization
@@ -37,8 +38,8 @@ def load_sdf(folder: Path, device: torch.device | str = "cpu") -> LoadedSDF:
     path = Path(folder) / SDF_FILE
     if not path.is_file():
         raise InputError(folder, f"no {SDF_FILE}: not a nefii geometry folder (run nefii geometry first)")
+    state = load_tensors(path, device)
     try:
-        state = torch.load(path, map_location=device, weights_only=False)
         cfg = geometry_config_from_dict(state["config"])
         net = SDFNetwork(make_encoding(cfg.sdf.encoding), cfg.sdf.hidden, cfg.sdf.layers, cfg.feature_dim,
                          cfg.init_radius)

@@ -19,7 +19,8 @@ from tqdm import tqdm
 
 from ..camera import pixel_rays
 from ..data.scene import SceneData
-from ..io.checkpoints import latest_checkpoint, save_checkpoint
+from ..errors import InputError
+from ..io.checkpoints import LoadedCheckpoint, save_checkpoint
 from .config import GeometryConfig
 from .losses import GeometryLoss, geometry_loss, level_set_area, normal_variation
 from .model import NeuSModel, render_rays
@@ -155,12 +156,13 @@ class GeometryTrainer:
         self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["generator"].cpu())  # a ByteTensor even for a CUDA generator
 
-    def resume(self, folder: Path) -> bool:
-        last = latest_checkpoint(folder)
-        if last is None:
-            return False
-        self.load_state_dict(torch.load(last, map_location=self.device, weights_only=False))
-        return True
+    def resume(self, checkpoint: LoadedCheckpoint) -> None:
+        """Continue from ``checkpoint`` (see :func:`nefii.io.checkpoints.load_latest_checkpoint`)."""
+        try:
+            self.load_state_dict(checkpoint.state)
+        except (KeyError, RuntimeError, TypeError, ValueError) as e:
+            raise InputError(checkpoint.path, f"does not fit this geometry run ({type(e).__name__}: "
+                                              f"{str(e).splitlines()[0][:160]})") from None
 
     def fit(self, folder: Path, progress: bool = True) -> None:
         folder.mkdir(parents=True, exist_ok=True)
