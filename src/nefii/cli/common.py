@@ -1,20 +1,58 @@
-"""Small helpers the verbs share: devices, threads, config errors as InputErrors."""
+"""Small helpers the verbs share: devices, threads, the rendering flags of eval and relight checked like a
+config (:func:`nefii.config_tools.validate`), all before any data is read."""
 from __future__ import annotations
 
+import argparse
 import os
+from dataclasses import dataclass
+from typing import Annotated
 
 import torch
 
+from ..config_tools import Range, validate
 from ..errors import InputError
 
 
 def pick_device(name: str) -> torch.device:
-    """``auto`` is CUDA when present, else the CPU; asking for CUDA without one is an input error."""
+    """``auto`` is CUDA when present, else the CPU; a name that is not ``cpu``, ``cuda`` or ``cuda:N``, or
+    CUDA without one, is an input error."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise InputError(None, f"--device {name}: no CUDA device is available")
-    return torch.device(name)
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise InputError(None, f"--device {name}: not a device (use cpu, cuda, cuda:N or auto)")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise InputError(None, f"--device {name}: no CUDA device is available")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise InputError(None, f"--device {name}: there are {torch.cuda.device_count()} CUDA device(s)")
+    return device
+
+
+@dataclass(frozen=True)
+class RenderFlags:
+    """The numbers eval and relight take on the command line, with their ranges."""
+
+    spp: Annotated[int, Range(1, 1 << 16)]
+    """estimator samples (eval) or paths (relight) per pixel"""
+    seed: Annotated[int, Range(0, 2**63 - 1)]
+    """seeds the samples"""
+    max_bounces: Annotated[int, Range(1, 1024)] = 8
+    """relight: surface interactions per path"""
+
+
+def render_flags(args: argparse.Namespace) -> RenderFlags:
+    """``--spp``, ``--seed`` (and ``--max-bounces``) checked; a bad one is an input error naming the flag."""
+    flags = RenderFlags(args.spp, args.seed, getattr(args, "max_bounces", 8))
+    try:
+        validate(flags)
+    except ValueError as e:
+        name, problem = str(e).split(": ", 1)
+        raise InputError(None, f"--{name.replace('_', '-')}: {problem}") from None
+    return flags
 
 
 def set_threads(threads: int) -> int:

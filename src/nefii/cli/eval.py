@@ -10,7 +10,7 @@ from tqdm import tqdm
 from ..data import load_scene
 from ..evaluate.run import evaluate_run
 from ..fit.outputs import load_run
-from .common import pick_device, set_threads
+from .common import pick_device, render_flags, set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -26,6 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    render_flags(args)
     device = pick_device(args.device)
     fitted = load_run(args.run, device)
     set_threads(fitted.config.threads)

@@ -1,6 +1,7 @@
 """``nefii export RUN --out asset.glb``: the recovered material baked into textures on the frozen
 mesh, as a Y-up glTF binary (or OBJ/MTL + PNGs), with the recovered light as ``envmap.exr`` and a
-README on opening both in Blender, all beside ``--out``."""
+README on opening both in Blender, all beside ``--out``. It writes only those files, and replaces none
+that exist (outside ``RUN/export``, its default folder) unless ``--force``."""
 from __future__ import annotations
 
 import argparse
@@ -32,6 +33,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help=f"side of the square textures in texels, {TEXTURE_SIZES[0]}..{TEXTURE_SIZES[1]} (default 2048)")
     p.add_argument("--format", choices=FORMATS, default=None,
                    help="glb (default; or taken from --out's suffix) or obj (OBJ/MTL + PNG textures)")
+    p.add_argument("--force", action="store_true",
+                   help="replace files of the same names beside --out (default: refuse)")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -75,6 +78,22 @@ def check_writable(out: Path) -> None:
         raise InputError(out, f"cannot be written: no permission to write in {ancestor}")
 
 
+def files_written(out: Path, fmt: str) -> list[Path]:
+    """Every file an export to ``out`` writes."""
+    companions = [out.with_name(f"{out.stem}_albedo.png"), out.with_name(f"{out.stem}_roughness.png"),
+                  out.with_suffix(".mtl")] if fmt == "obj" else []
+    return [out, *companions, out.parent / "envmap.exr", out.parent / "README.txt"]
+
+
+def check_no_overwrite(files: list[Path]) -> None:
+    """Refuse to replace files that exist (the user's own, or another export's)."""
+    existing = [p for p in files if p.exists()]
+    if existing:
+        more = f" (and {', '.join(p.name for p in existing[1:])})" if len(existing) > 1 else ""
+        raise InputError(existing[0], f"exists{more}: export would replace it; pass --force to overwrite, or "
+                                      "choose another --out")
+
+
 def bake_with_progress(model: NeFIIModel, mesh: MeshGeometry, size: int, quiet: bool) -> BakedAsset:
     """``bake_asset`` with a progress bar over the texels decoded (it appears once their count is known)."""
     bars: list[tqdm] = []
@@ -95,6 +114,8 @@ def bake_with_progress(model: NeFIIModel, mesh: MeshGeometry, size: int, quiet: 
 def run(args: argparse.Namespace) -> int:
     size = texture_size(args.texture_size)
     out, fmt = output_path(args.out, args.format, args.run)
+    if args.out is not None and not args.force:       # RUN/export is the run's own
+        check_no_overwrite(files_written(out, fmt))
     device = pick_device(args.device)
     fitted = load_run(args.run, device)
     set_threads(fitted.config.threads)

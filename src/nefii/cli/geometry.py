@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 import trimesh
 
@@ -18,6 +19,7 @@ from ..data.fingerprint import fingerprint, require_same
 from ..errors import InputError
 from ..io.atomic import atomic_path, write_text_atomic
 from ..io.checkpoints import latest_checkpoint, list_checkpoints, load_latest_checkpoint
+from ..raycast.mesh import check_faces
 from ..run_folder import RunManifest, write_manifest, writing_run
 from ..sdf.config import GEOMETRY_PRESETS, GeometryConfig, resolve_geometry_config
 from ..sdf.extract import extract_mesh
@@ -68,6 +70,9 @@ def _load_mesh(path: Path) -> trimesh.Trimesh:
         raise InputError(path, f"cannot read the mesh ({type(e).__name__}: {e})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(path, "the mesh has no triangles")
+    check_faces(np.asarray(mesh.faces), len(mesh.vertices), path)
+    if not np.isfinite(mesh.vertices).all():
+        raise InputError(path, "mesh has NaN/inf vertex coordinates")
     return mesh
 
 

@@ -36,7 +36,7 @@ from ..relight.render import render_relit
 from ..relight.scoring import (PROTOCOL, albedo_scale_from_eval, albedo_scale_from_ground_truth, merge_metrics,
                               metrics_entry, scaled_material, score_view, tone_map)
 from ..relight.cameras import Views, views_from_transforms
-from .common import pick_device, set_threads
+from .common import pick_device, render_flags, set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -81,10 +81,7 @@ def _warn(caught: list[warnings.WarningMessage]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.spp < 1:
-        raise InputError(None, f"--spp {args.spp}: must be at least 1")
-    if args.max_bounces < 1:
-        raise InputError(None, f"--max-bounces {args.max_bounces}: must be at least 1")
+    render_flags(args)
     device = pick_device(args.device)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

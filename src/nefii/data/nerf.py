@@ -70,13 +70,20 @@ def intrinsics(meta: dict[str, Any], frame: dict[str, Any], width: int, height: 
         v = frame.get(key, meta.get(key))
         return None if v is None else _number(v, path, where, key)
 
+    def angle(key: str) -> float | None:
+        a = get(key)
+        if a is not None and not 0.0 < a < math.pi:
+            raise InputError(path, f"{where}: '{key}' is {a:g} radians; a field of view lies strictly between 0 "
+                                   "and pi")
+        return a
+
     fx, fy = get("fl_x"), get("fl_y")
     if fx is None:
-        angle_x = get("camera_angle_x")
+        angle_x = angle("camera_angle_x")
         if angle_x is None:
             raise InputError(path, f"{where}: no intrinsics ('fl_x' or 'camera_angle_x')")
         fx = 0.5 * width / math.tan(0.5 * angle_x)
-        angle_y = get("camera_angle_y")
+        angle_y = angle("camera_angle_y")
         if fy is None and angle_y is not None:
             fy = 0.5 * height / math.tan(0.5 * angle_y)
     fy = fx if fy is None else fy

@@ -66,8 +66,8 @@ def read_config(folder: Path) -> FitConfig:
         return config_from_dict(json.loads(path.read_text()))
     except FileNotFoundError:
         raise InputError(path, "not found: is this a nefii run folder?") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise InputError(path, f"not a valid nefii config ({e})") from None
+    except (ValueError, KeyError, TypeError) as e:     # JSONDecodeError is a ValueError
+        raise InputError(path, f"not a valid nefii config ({e.args[0] if e.args else type(e).__name__})") from None
 
 
 def write_outputs(folder: Path, cfg: FitConfig, model: NeFIIModel, box: tuple[torch.Tensor, torch.Tensor],

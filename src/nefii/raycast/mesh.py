@@ -61,6 +61,15 @@ def interpolate_normals(per_vertex: Float[Tensor, "*bs 3 3"], bary: Float[Tensor
     return normalize((per_vertex * bary.unsqueeze(-1)).sum(-2))
 
 
+def check_faces(faces: np.ndarray, num_vertices: int, path: str | Path) -> None:
+    """Every face's vertex indices lie in ``[0, num_vertices)``."""
+    bad = (faces < 0) | (faces >= num_vertices)
+    if bad.any():
+        f = int(np.argwhere(bad.any(-1))[0, 0])
+        raise InputError(path, f"face {f} refers to vertex {int(faces[f][bad[f]][0])}, but the mesh has "
+                               f"{num_vertices} vertices (indices 0..{num_vertices - 1})")
+
+
 class MeshGeometry:
     """A frozen triangle mesh: ``intersect`` and ``occluded`` for batches of rays."""
 
@@ -127,6 +136,7 @@ class MeshGeometry:
         if not np.isfinite(mesh.vertices).all():
             raise InputError(path, "mesh has NaN/inf vertex coordinates")
         vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+        check_faces(faces, len(vertices), path)
         if normal_sigma > 0 or lookup_sigma > 0:
             diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0)))
             raw = vertex_normals(vertices, faces)

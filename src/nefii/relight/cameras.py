@@ -11,6 +11,7 @@ from ..data.files import read_image, read_json, resolve_image
 from ..data.nerf import frames_of, gl_pose, intrinsics
 from ..data.scene import Cameras
 from ..data.assemble import frame_indices
+from ..config_tools import machine_memory_bytes
 from ..errors import InputError
 
 
@@ -19,6 +20,10 @@ class Views:
     cameras: Cameras
     indices: tuple[int, ...]
     """output names: the ``K`` of each frame's ``r_K`` (else its position)"""
+
+
+BYTES_PER_PIXEL = 128
+"""what a rendered view holds per pixel: the accumulators, the RGBA result, the EXR and PNG being written"""
 
 
 def _size(meta: dict, path: Path, frames: list[dict]) -> tuple[int, int]:
@@ -33,6 +38,10 @@ def _size(meta: dict, path: Path, frames: list[dict]) -> tuple[int, int]:
         h, w = read_image(image)[0].shape[:2]
     if not all(isinstance(v, (int, float)) and float(v).is_integer() and v > 0 for v in (w, h)):
         raise InputError(path, f"'w' and 'h' must be positive whole numbers, got w={w!r}, h={h!r}")
+    need, have = BYTES_PER_PIXEL * float(w) * float(h), machine_memory_bytes()
+    if need > have:
+        raise InputError(path, f"{int(w)}x{int(h)} pixels would need about {need / 2**30:.0f} GiB for one view's "
+                               f"image buffers, more than this machine's {have / 2**30:.0f} GiB")
     return int(w), int(h)
 
 

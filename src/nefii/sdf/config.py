@@ -3,73 +3,73 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from ..config_tools import apply_overrides, dataclass_from_dict
-from ..fit.config import NetworkConfig
+from ..config_tools import Range, apply_overrides, check_memory, dataclass_from_dict, nearest, validate
+from ..fit.config import NetworkConfig, network_numbers
 
 
 @dataclass
 class GeometryConfig:
-    preset: str = "cpu"
+    preset: Literal["cpu", "paper", "tiny"] = "cpu"
     """the preset these values started from"""
-    steps: int = 6000
+    steps: Annotated[int, Range(1)] = 6000
     """optimisation steps"""
-    batch_rays: int = 512
+    batch_rays: Annotated[int, Range(1)] = 512
     """rays per step"""
-    foreground_rays: float = 0.5
+    foreground_rays: Annotated[float, Range(0, 1)] = 0.5
     """with masks, this fraction of each batch is drawn from the pixels inside the masks and the rest
     from all pixels: more rays where the colour loss has something to say (the mask loss is
     reweighted so that it stays the mean over all pixels)"""
-    samples: int = 32
+    samples: Annotated[int, Range(2, 4096)] = 32
     """stratified samples per ray inside the unit sphere"""
-    importance: int = 32
+    importance: Annotated[int, Range(0, 4096)] = 32
     """extra samples per ray by NeuS's hierarchical up-sampling (in ``importance_rounds`` rounds)"""
-    importance_rounds: int = 2
+    importance_rounds: Annotated[int, Range(0, 16)] = 2
     """rounds of up-sampling, at fixed sharpness 64 * 2^i"""
-    background_samples: int = 16
+    background_samples: Annotated[int, Range(1, 4096)] = 16
     """samples per ray of the NeRF++ background (used without masks)"""
-    lr: float = 1e-2
+    lr: Annotated[float, Range(0, 10, lo_open=True)] = 1e-2
     """Adam learning rate of the SDF's encoding (a hash-grid table wants a large step)"""
-    lr_networks: float = 2e-3
+    lr_networks: Annotated[float, Range(0, 10, lo_open=True)] = 2e-3
     """Adam learning rate of the MLPs, the sharpness and the background"""
-    lr_decay: float = 0.1
+    lr_decay: Annotated[float, Range(0, 1, lo_open=True)] = 0.1
     """learning rates fall exponentially to this fraction at the last step"""
-    eikonal_weight: float = 0.1
+    eikonal_weight: Annotated[float, Range(0)] = 0.1
     """weight of the eikonal loss ``(|grad f| - 1)^2`` (NeuS: 0.1)"""
-    area_weight: float = 0.1
+    area_weight: Annotated[float, Range(0)] = 0.1
     """weight of a minimal-surface prior, the mean of ``exp(-area_sharpness |f(u)|)`` over
     ``area_points`` random points in the ball (proportional to the area of the zero level set, as
     SparseNeuS's sparseness loss): where no view constrains the surface (the underside of an object
     standing on something, seen only from above) it spans the observed edges by the smallest
     surface instead of keeping the initial sphere. Too strong, it lids hollows the views look into
     (the bowl at 0.3; see src/nefii/sdf/design.md)"""
-    area_sharpness: float = 50.0
+    area_sharpness: Annotated[float, Range(0, lo_open=True)] = 50.0
     """``tau`` of the minimal-surface prior, in 1 / normalised units"""
-    area_points: int = 2048
+    area_points: Annotated[int, Range(1)] = 2048
     """random points per step of the minimal-surface prior"""
-    normal_smoothness: float = 0.0
+    normal_smoothness: Annotated[float, Range(0)] = 0.0
     """weight of a prior that the surface normal varies slowly along the surface: ``|n(x) - n(x + t)|``
     at the rendered surface points ``x`` with ``t`` a random step in the tangent plane of std
     ``normal_radius`` (a hash grid's gradient is local to its cells and turns bumpy without it)"""
-    normal_radius: float = 0.02
+    normal_radius: Annotated[float, Range(0, 1)] = 0.02
     """std of the tangent step of the normal prior, in normalised units"""
-    normal_smoothness_start: float = 0.0
+    normal_smoothness_start: Annotated[float, Range(0, 1)] = 0.0
     """fraction of the steps before which the normal prior is off: smoothing from the start keeps the
     surface from bending into hollows (it lids a bowl), so it can wait until the topology is settled"""
-    mask_weight: float = 0.1
+    mask_weight: Annotated[float, Range(0)] = 0.1
     """weight of the mask loss, binary cross-entropy of the rendered opacity (NeuS: 0.1)"""
-    anneal_end: float = 0.2
+    anneal_end: Annotated[float, Range(0, 1)] = 0.2
     """fraction of the steps over which NeuS's cosine annealing goes from 0 to 1"""
-    coarse_to_fine: float = 0.0
+    coarse_to_fine: Annotated[float, Range(0, 1)] = 0.0
     """fraction of the steps over which the hash-grid levels are switched on one after another,
     from ``start_levels`` (Neuralangelo's coarse-to-fine; 0: all levels from the start). The
     coarse levels settle the topology (a bowl's hollow) before the fine ones add detail"""
-    start_levels: int = 4
+    start_levels: Annotated[int, Range(1, 32)] = 4
     """hash-grid levels active at the first step when ``coarse_to_fine`` > 0"""
-    init_radius: float = 0.5
+    init_radius: Annotated[float, Range(0, 1, lo_open=True)] = 0.5
     """radius of the sphere the SDF starts as, in normalised units"""
-    feature_dim: int = 16
+    feature_dim: Annotated[int, Range(1, 4096)] = 16
     """size of the geometric feature vector f (paper: 512)"""
     sdf: NetworkConfig = field(default_factory=NetworkConfig)
     """the SDF network"""
@@ -78,29 +78,39 @@ class GeometryConfig:
     appearance_encoding: bool = False
     """the colour network encodes the point with ``color.encoding`` of its own, besides the SDF's
     feature vector: texture then need not live in the SDF's encoding, where it bends the surface"""
-    view_freqs: int = 4
+    view_freqs: Annotated[int, Range(0, 32)] = 4
     """Fourier frequencies of the view direction fed to the colour network (NeuS: 4); fewer leave less
     room to fake geometry by view-dependent colour"""
-    mesh_resolution: int = 256
+    mesh_resolution: Annotated[int, Range(8, 2048)] = 256
     """marching-cubes grid resolution over the unit cube"""
-    min_component: float = 0.01
+    min_component: Annotated[float, Range(0, 1)] = 0.01
     """connected components with fewer than this fraction of the mesh's faces are dropped (floaters)"""
-    from_mesh_points: int = 8192
+    from_mesh_points: Annotated[int, Range(1)] = 8192
     """``--from-mesh``: sampled points per step"""
-    seed: int = 0
+    seed: Annotated[int, Range(0, 2**63 - 1)] = 0
     """seeds parameters, ray batches and samples"""
-    checkpoint_every_s: float = 120.0
+    checkpoint_every_s: Annotated[float, Range(0)] = 120.0
     """seconds between checkpoints"""
-    threads: int = 0
+    threads: Annotated[int, Range(0, 4096)] = 0
     """CPU threads for torch (0: the cores this process may use)"""
 
     def __post_init__(self) -> None:
-        for name in ("foreground_rays", "normal_smoothness_start"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
-        for name in ("area_weight", "normal_smoothness", "view_freqs"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must not be negative, got {getattr(self, name)}")
+        """Every value checked (:func:`nefii.config_tools.validate`) before any data is read."""
+        validate(self)
+        check_memory(geometry_memory_bytes(self), "the geometry stage", "batch_rays, samples, importance, "
+                     "mesh_resolution, the networks' hidden/layers or the encodings' log2_table_size/levels")
+
+
+def geometry_memory_bytes(cfg: GeometryConfig) -> float:
+    """A rough upper estimate of a step's memory (parameters four times over, activations at every sample
+    along the rays, kept for the backward pass) and of marching cubes' grid: it only has to catch sizes no
+    machine holds."""
+    sdf_params, sdf_act = network_numbers(cfg.sdf)
+    color_params, color_act = network_numbers(cfg.color)
+    samples = cfg.batch_rays * (cfg.samples + cfg.importance + cfg.background_samples) + cfg.area_points
+    activations = 3 * samples * (sdf_act + color_act + cfg.feature_dim)
+    grid = 8 * (cfg.mesh_resolution + 1) ** 3
+    return 4.0 * (4 * (sdf_params + color_params) + activations) + grid
 
 
 GEOMETRY_PRESETS: dict[str, dict[str, Any]] = {
@@ -129,7 +139,8 @@ GEOMETRY_PRESETS: dict[str, dict[str, Any]] = {
 def resolve_geometry_config(preset: str, overrides: list[str]) -> GeometryConfig:
     """The preset, then ``key=value`` overrides with dotted keys (``sdf.hidden=128``)."""
     if preset not in GEOMETRY_PRESETS:
-        raise KeyError(f"unknown preset {preset!r} (known: {', '.join(GEOMETRY_PRESETS)})")
+        raise KeyError(f"unknown preset {preset!r} (known: {', '.join(GEOMETRY_PRESETS)})"
+                       f"{nearest(preset, GEOMETRY_PRESETS)}")
     values = dataclasses.asdict(GeometryConfig())
     _update(values, {**GEOMETRY_PRESETS[preset], "preset": preset})
     apply_overrides(values, overrides)
