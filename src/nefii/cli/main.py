@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from importlib import import_module
 
 from ..errors import InputError
@@ -26,8 +27,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+
+    def one_line(message, category, filename, lineno, file=None, line=None) -> None:
+        print(f"nefii {args.verb}: warning: {message}", file=sys.stderr)
+
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():      # warnings (suspicious but legitimate input) as one line each
+            warnings.showwarning = one_line
+            return int(args.func(args) or 0)
     except InputError as e:
         print(f"nefii {args.verb}: error: {e}", file=sys.stderr)
         return e.exit_code

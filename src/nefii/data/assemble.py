@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -45,6 +46,7 @@ def read_views(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None, bo
         rgbs.append(rgb)
         alphas.append(alpha)
     size = rgbs[0].shape[:2]
+    _warn_suspicious(views, rgbs, alphas)
     masks: list[np.ndarray] | None = None
     transparent = False
     if any(v.mask is not None for v in views):
@@ -64,6 +66,22 @@ def read_views(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None, bo
             check_mask(m, v.image)
             masks.append(m)
     return np.stack(rgbs), (None if masks is None else np.stack(masks)), transparent
+
+
+def _warn_suspicious(views: Sequence[View], rgbs: list[np.ndarray], alphas: list[np.ndarray | None]) -> None:
+    """One warning each for what a dataset may mean but rarely does: negative pixels, and views without an
+    alpha channel among views with one (then alpha gives no masks at all: the background counts as seen)."""
+    negative = [(v, int((rgb < 0).any(-1).sum())) for v, rgb in zip(views, rgbs)]
+    negative = [(v, n) for v, n in negative if n]
+    if negative:
+        total = sum(n for _, n in negative)
+        warnings.warn(f"{negative[0][0].image}: {total} pixel(s) with negative values in {len(negative)} view(s); "
+                      "trained on as they are", stacklevel=3)
+    without = [v for v, a in zip(views, alphas) if a is None]
+    if without and len(without) < len(views):
+        warnings.warn(f"{without[0].image}: no alpha channel, while {len(views) - len(without)} other view(s) have "
+                      f"one ({len(without)} without): no view's alpha is used as a mask, so the background "
+                      "counts as visible everywhere", stacklevel=3)
 
 
 def frame_indices(stems: Sequence[str]) -> tuple[int, ...]:

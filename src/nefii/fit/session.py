@@ -3,6 +3,7 @@ initialisation and resuming. ``nefii fit``, the benchmarks and the tests all sta
 :func:`prepare_fit`, so they measure the same recipe."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -74,6 +75,21 @@ def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg:
     return int((init.sharpness == cfg.light.sharpness_init_peak).sum())
 
 
+FAR = 100.0
+"""a geometry more than this many of its diagonals from every camera is suspicious (other units, another
+world)"""
+
+
+def check_in_view(scene: SceneData, box: tuple[Tensor, Tensor], source: GeometrySource) -> None:
+    """Warn when the geometry lies far from every camera (it is likely in another world or other units)."""
+    lo, hi = (b.double() for b in box)
+    diagonal = float((hi - lo).norm())
+    nearest = float((scene.cameras.c2w[:, :3, 3].double() - 0.5 * (lo + hi)).norm(dim=-1).min())
+    if nearest > FAR * max(diagonal, 1e-12):
+        warnings.warn(f"{source.mesh}: the mesh (diagonal {diagonal:.3g}) is {nearest:.3g} from the nearest camera, "
+                      f"over {FAR:g} diagonals: is it in the cameras' world and units?", stacklevel=2)
+
+
 def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometry_dir: Path | None = None,
                 device: torch.device = torch.device("cpu"), dist: DistContext = DistContext(),
                 checkpoint: LoadedCheckpoint | None = None,
@@ -92,6 +108,7 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     box = tuple(torch.from_numpy(b.copy()) for b in geometry.bounds)
     say(f"{len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
         f"{describe_geometry(source, geometry, cfg, features.dim if features else 0)}")
+    check_in_view(scene, box, source)
     pixels = first_hits(scene, geometry).to(device)
     say(f"{len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels")
     model = build_model(cfg, box, features)

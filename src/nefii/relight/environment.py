@@ -36,6 +36,11 @@ ENVMAP_SUFFIXES = (".exr", ".hdr")
 # --------------------------------------------------------------------------- reading files
 
 
+MAX_TOTAL_RADIANCE = 1e30
+"""the largest sum of a map's pixels accepted: sampling sums them, and paths multiply radiance by ratios of
+pdfs; float32 ends at 3.4e38 (a map at 3e38 rendered a black object)"""
+
+
 def _read_hdr(path: Path) -> np.ndarray:
     import cv2
 
@@ -83,4 +88,9 @@ def load_environment(path: str | Path, rotate: float = 0.0, exposure: float = 0.
     img = torch.from_numpy(read_envmap(path)).to(device=device, dtype=dtype) * (2.0 ** exposure)
     if not bool(torch.isfinite(img).all()):
         raise InputError(path, f"--exposure {exposure:g} makes the radiance overflow {dtype}")
+    total = float(img.double().sum())
+    if total > MAX_TOTAL_RADIANCE:
+        ev = math.ceil(math.log2(total / MAX_TOTAL_RADIANCE))
+        raise InputError(path, f"radiance summing to {total:.3g} overflows the path tracer's float arithmetic "
+                               f"(at most {MAX_TOTAL_RADIANCE:g}); scale it down, e.g. --exposure {exposure - ev:g}")
     return Environment.from_image(img, rotate)
