@@ -199,6 +199,10 @@ CASES = [
          2, ("cameras.json", "1000000x1000000", "GiB"), setup_huge_cameras),
     Case("relight under a 3e38 map", "relight {run} --envmap {bad} --spp 1 --quiet", 2,
          ("sun.exr", "overflows", "--exposure"), setup_blinding_map),
+    Case("relight --out is a file", "relight {run} --envmap {scene}/envmap.exr --spp 1 --quiet --out {bad}", 2,
+         ("notes.txt", "not a folder"), setup_a_file),
+    Case("geometry --out is a file", "geometry {scene} --out {bad} --preset tiny --quiet", 2,
+         ("notes.txt", "not a folder"), setup_a_file),
     # ---- export writes only its own files
     Case("export beside a README", "export {run} --out {bad} --texture-size 16 --quiet", 2,
          ("README.txt", "--force"), setup_export_beside_others),

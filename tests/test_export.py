@@ -42,7 +42,7 @@ def run(tmp_path_factory):
     scene = write_rendered_scene(tmp / "scene", res=16)
     run = tmp / "run"
     assert main(["fit", str(scene), "--out", str(run), "--preset", "tiny", "--quiet"]) == 0
-    blob = torch.load(run / "model.pt", weights_only=False)
+    blob = torch.load(run / "model.pt", weights_only=True)
     g = torch.Generator().manual_seed(1)
     state = blob["state"]
     state["material.encoding.table"] = torch.randn(state["material.encoding.table"].shape, generator=g)

@@ -92,8 +92,8 @@ def test_resume_after_sigkill_matches_an_uninterrupted_run(tiny_scene, tmp_path)
     subprocess.run(_fit_cmd(tiny_scene, killed, "--resume"), check=True, env=env, capture_output=True)
     assert not list((killed / "checkpoints").glob(".*")), "stale temporaries are cleaned on resume"
 
-    a = torch.load(straight / "model.pt", weights_only=False)["state"]
-    b = torch.load(killed / "model.pt", weights_only=False)["state"]
+    a = torch.load(straight / "model.pt", weights_only=True)["state"]
+    b = torch.load(killed / "model.pt", weights_only=True)["state"]
     for k in a:
         assert torch.allclose(a[k], b[k], rtol=1e-4, atol=1e-5), k
 

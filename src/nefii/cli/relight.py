@@ -82,6 +82,8 @@ def _warn(caught: list[warnings.WarningMessage]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     render_flags(args)
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        raise InputError(args.out, "exists and is not a folder: --out wants a folder")
     device = pick_device(args.device)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
