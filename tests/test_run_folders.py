@@ -174,3 +174,15 @@ def test_a_foreign_folder_is_left_alone(scene, tmp_path):
 def test_a_finished_run_is_not_overwritten_without_resume(scene, run):
     r = cli(["fit", scene, "--out", run, *TINY])
     assert_one_line_error(r, "already holds a run", "--resume")
+
+
+def test_geometry_resume_on_other_data_is_refused(scene, tmp_path):
+    geo = tmp_path / "geo"
+    r = cli(["geometry", scene, "--out", geo, "--preset", "tiny", "--quiet", "--set", "steps=2", "--set", "threads=1"])
+    assert r.rc == 0, r.err
+    assert json.loads((geo / "run.json").read_text())["kind"] == "geometry"
+    other = write_rendered_scene(tmp_path / "other", res=16, n_train=6, n_test=2, seed=1)
+    r = cli(["geometry", other, "--out", geo, "--preset", "tiny", "--quiet", "--resume"])
+    assert_one_line_error(r, "--resume on other data", "images differ")
+    r = cli(["fit", scene, "--out", geo, *TINY])
+    assert_one_line_error(r, "holds a nefii geometry run, not a fit run")
