@@ -156,6 +156,8 @@ CASES = [
     Case("tonemap=bogus", FIT + " --set tonemap=bogus", 2, ("tonemap", "none, log1p")),
     Case("encoding kind", FIT + " --set material.encoding.kind=bogus", 2, ("material.encoding.kind", "hashgrid")),
     Case("light.kind=bogus", FIT + " --set light.kind=bogus", 2, ("light.kind", "sg, envmap")),
+    Case("brdf.diffuse=lamber", FIT + " --set brdf.diffuse=lamber", 2,
+         ("brdf.diffuse: 'lamber' is not one of burley, lambert; did you mean 'lambert'?",)),
     Case("light.num_lobes=0", FIT + " --set light.num_lobes=0", 2, ("light.num_lobes", "below 1")),
     Case("threads=-1", FIT + " --set threads=-1", 2, ("threads", "below 0")),
     Case("steps=0", FIT + " --set steps=0", 2, ("steps", "below 1")),

@@ -11,13 +11,16 @@ import pytest
 import torch
 
 from quadrature import DTYPE, integrate_upper_hemisphere, orthonormal_frame
-from nefii.render.brdf import (F0_DIELECTRIC, ROUGHNESS_MIN, D_ggx, F_schlick, G1_smith_ggx, G_smith, Material,
-                               V_smith, brdf_eval, roughness_from_logit)
+from nefii.render.brdf import (F0_DIELECTRIC, OFFICIAL_BRDF, ROUGHNESS_MIN, BRDFModel, D_ggx, F_schlick,
+                               G1_smith_ggx, G_smith, Material, V_smith, V_smith_ggx, brdf_eval, burley_factor,
+                               roughness_from_logit)
 from nefii.render.estimator import estimate_Lo
 from nefii.render.estimator_reference import estimate_Lo_reference
 from nefii.render.sg import SGMixture, sg_eval
 
 ALPHAS = (ROUGHNESS_MIN**2, 0.02, 0.1, 0.36, 1.0)
+MODELS = (BRDFModel(), OFFICIAL_BRDF, BRDFModel("lambert", "smith"), BRDFModel("burley", "schlick"))
+LAMBERT = BRDFModel(diffuse="lambert")
 UP = torch.tensor([0.0, 0.0, 1.0], dtype=DTYPE)
 
 
@@ -87,6 +90,37 @@ def test_V_smith_is_G_over_4_nl_nv() -> None:
     torch.testing.assert_close(V_smith(nl, nv, r), G_smith(nl, nv, r) / (4.0 * nl * nv), rtol=1e-12, atol=0.0)
 
 
+def test_V_smith_ggx_is_exact_G_over_4_nl_nv() -> None:
+    """The exact shadowing term: ``G1_smith_ggx(nl) G1_smith_ggx(nv) / (4 nl nv)`` with alpha = r^2."""
+    gen = torch.Generator().manual_seed(2)
+    nl = (1e-3 + torch.rand(256, generator=gen, dtype=DTYPE)).clamp_max(1.0)
+    nv = (1e-3 + torch.rand(256, generator=gen, dtype=DTYPE)).clamp_max(1.0)
+    r = ROUGHNESS_MIN + (1.0 - ROUGHNESS_MIN) * torch.rand(256, generator=gen, dtype=DTYPE)
+    want = G1_smith_ggx(nl, r * r) * G1_smith_ggx(nv, r * r) / (4.0 * nl * nv)
+    torch.testing.assert_close(V_smith_ggx(nl, nv, r), want, rtol=1e-12, atol=0.0)
+
+
+def test_burley_factor_is_the_2012_form() -> None:
+    """Burley 2015's ``(1 - F_L/2)(1 - F_V/2) + R (F_L + F_V + F_L F_V (R - 1))`` equals Burley 2012's
+    ``(1 + (F_D90 - 1) F_L)(1 + (F_D90 - 1) F_V)`` with ``F_D90 = 1/2 + 2 r (l.h)^2``; 1 at normal incidence."""
+    gen = torch.Generator().manual_seed(9)
+    nl, nv, lh, r = (torch.rand(256, generator=gen, dtype=DTYPE) for _ in range(4))
+    fd90 = 0.5 + 2.0 * r * lh * lh
+    want = (1 + (fd90 - 1) * (1 - nl) ** 5) * (1 + (fd90 - 1) * (1 - nv) ** 5)
+    torch.testing.assert_close(burley_factor(nl, nv, lh, r), want, rtol=1e-12, atol=1e-15)
+    one = torch.ones(3, dtype=DTYPE)
+    torch.testing.assert_close(burley_factor(one, one, one, tensor(0.1, 0.5, 1.0)), one, rtol=0.0, atol=1e-15)
+
+
+@pytest.mark.parametrize("roughness", (0.089, 0.5, 1.0))
+def test_burley_directional_albedo_at_normal_view(roughness: float) -> None:
+    """Seen along the normal, ``F_V = 0`` and ``l.h = cos(theta_l / 2)``, so the white Burley lobe returns
+    ``1 + 2 int_0^1 (r (1 + mu) - 1/2)(1 - mu)^5 mu dmu = 1 + 5 r / 84 - 1 / 42`` (Beta integrals)."""
+    m = Material(torch.ones(3, dtype=DTYPE), tensor(roughness)[0], BRDFModel(diffuse="burley"))
+    albedo = integrate_upper_hemisphere(lambda w: brdf_eval(m, UP, UP, w).diffuse[..., 0] * w[..., 2], UP)
+    assert albedo == pytest.approx(1.0 + 5.0 * roughness / 84.0 - 1.0 / 42.0, abs=1e-6)
+
+
 def test_G_smith_is_the_schlick_ggx_product() -> None:
     """``G1(x) = x / (x (1 - k) + k)`` with ``k = (r + 1)^2 / 8`` for both directions (docs/design.md)."""
     nl, nv, r = tensor(0.3, 0.9), tensor(0.7, 0.2), tensor(0.5, 1.0)
@@ -138,8 +172,8 @@ def world_view(n: torch.Tensor, view_deg: float) -> torch.Tensor:
 
 @pytest.mark.parametrize("view_deg", (0.0, 60.0, 89.0))
 def test_white_lambertian_furnace_by_quadrature(view_deg: float) -> None:
-    """``int (albedo / pi) cos dwi = 1`` for albedo 1 (diffuse part of ``brdf_eval``)."""
-    local = Material(torch.ones(3, dtype=DTYPE), tensor(0.5)[0])
+    """``int (albedo / pi) cos dwi = 1`` for albedo 1 (diffuse part of ``brdf_eval``, Lambert lobe)."""
+    local = Material(torch.ones(3, dtype=DTYPE), tensor(0.5)[0], LAMBERT)
     wo = local_view(view_deg)
     Lo = integrate_upper_hemisphere(lambda w: brdf_eval(local, UP, wo, w).diffuse[..., 1] * w[..., 2], UP)
     assert Lo == pytest.approx(1.0, abs=1e-3)
@@ -160,7 +194,7 @@ def test_white_lambertian_furnace_by_estimators(roughness: float, view_deg: floa
     B, N = 4000, 4
     n = FURNACE_NORMAL.expand(B, 3)
     wo = world_view(FURNACE_NORMAL, view_deg).expand(B, 3)
-    material = Material(torch.ones(B, 3, dtype=DTYPE), torch.full((B,), roughness, dtype=DTYPE))
+    material = Material(torch.ones(B, 3, dtype=DTYPE), torch.full((B,), roughness, dtype=DTYPE), LAMBERT)
     ones = torch.ones_like
     mis = estimate_Lo(n, wo, material, FURNACE_ENV, ones, N, torch.Generator().manual_seed(7)).diffuse
     mean, se = per_point_mean_and_se(mis[:, 0])
@@ -174,9 +208,9 @@ SPEC_ROUGHNESS = (0.089, 0.15, 0.25, 0.4, 0.6, 0.8, 1.0)
 SPEC_VIEW_DEG = (0.0, 30.0, 60.0, 80.0, 89.0)
 
 
-def specular_albedo(roughness: float, view_deg: float, f0: float) -> float:
+def specular_albedo(roughness: float, view_deg: float, f0: float, brdf: BRDFModel = BRDFModel()) -> float:
     """``int f_spec(wo, wi) cos dwi`` over the hemisphere, in a frame centred on the mirror direction."""
-    m = Material(torch.ones(3, dtype=DTYPE), tensor(roughness)[0])
+    m = Material(torch.ones(3, dtype=DTYPE), tensor(roughness)[0], brdf)
     wo = local_view(view_deg)
     mirror = tensor(-float(wo[0]), -float(wo[1]), float(wo[2]))
     def integrand(w):
@@ -185,14 +219,28 @@ def specular_albedo(roughness: float, view_deg: float, f0: float) -> float:
                                       dt_max=0.05)
 
 
+@pytest.mark.parametrize("shadowing", ("smith", "schlick"))
 @pytest.mark.parametrize("view_deg", SPEC_VIEW_DEG)
 @pytest.mark.parametrize("roughness", SPEC_ROUGHNESS)
-def test_specular_lobe_reflects_no_more_than_it_receives(roughness: float, view_deg: float) -> None:
-    """White furnace of the GGX lobe alone: directional albedo <= 1 with F = 1 (f0 = 1); with f0 = 0.04 well below."""
-    white = specular_albedo(roughness, view_deg, 1.0)
-    dielectric = specular_albedo(roughness, view_deg, F0_DIELECTRIC)
+def test_specular_lobe_reflects_no_more_than_it_receives(roughness: float, view_deg: float, shadowing: str) -> None:
+    """White furnace of the GGX lobe alone: directional albedo <= 1 with F = 1 (f0 = 1); with f0 = 0.04 below that,
+    and well below 1 unless the view grazes (where Fresnel itself reaches 0.4 at 80 degrees)."""
+    brdf = BRDFModel(shadowing=shadowing)
+    white = specular_albedo(roughness, view_deg, 1.0, brdf)
+    dielectric = specular_albedo(roughness, view_deg, F0_DIELECTRIC, brdf)
     assert 0.0 < white <= 1.0 + 1e-6, f"specular albedo {white:.6f} with F = 1"
-    assert dielectric <= white and dielectric < 0.2, f"specular albedo {dielectric:.6f} with f0 = 0.04"
+    assert dielectric <= white, f"specular albedo {dielectric:.6f} with f0 = 0.04, {white:.6f} with F = 1"
+    assert view_deg > 60.0 or dielectric < 0.2, f"specular albedo {dielectric:.6f} with f0 = 0.04"
+
+
+def test_exact_shadowing_loses_less_energy_than_schlick_k() -> None:
+    """The official ``k = (r+1)^2/8`` shadows more than the exact Smith term between the extremes (at r = 1 the
+    two G1 coincide, ``2c / (c + 1)``): white-furnace albedos at r = 0.5, 60 degrees, 0.86 exact and 0.59."""
+    exact = specular_albedo(0.5, 60.0, 1.0, BRDFModel(shadowing="smith"))
+    schlick = specular_albedo(0.5, 60.0, 1.0, BRDFModel(shadowing="schlick"))
+    assert schlick < 0.75 * exact, f"exact {exact:.4f}, schlick-k {schlick:.4f}"
+    assert specular_albedo(1.0, 60.0, 1.0, BRDFModel(shadowing="smith")) == pytest.approx(
+        specular_albedo(1.0, 60.0, 1.0, BRDFModel(shadowing="schlick")), rel=1e-12)
 
 
 def test_specular_albedo_near_one_for_smooth_surfaces_at_normal_incidence() -> None:
@@ -204,12 +252,13 @@ def test_specular_albedo_near_one_for_smooth_surfaces_at_normal_incidence() -> N
 # --------------------------------------------------------------------------- support, reciprocity
 
 
-def test_brdf_is_zero_below_the_surface() -> None:
+@pytest.mark.parametrize("brdf", MODELS)
+def test_brdf_is_zero_below_the_surface(brdf: BRDFModel) -> None:
     gen = torch.Generator().manual_seed(4)
     up, other = random_upper(64, gen), random_upper(64, gen)
     down = other * tensor(1.0, 1.0, -1.0)
     m = Material(torch.rand(64, 3, generator=gen, dtype=DTYPE),
-                 0.089 + 0.911 * torch.rand(64, generator=gen, dtype=DTYPE))
+                 0.089 + 0.911 * torch.rand(64, generator=gen, dtype=DTYPE), brdf)
     for wo, wi in ((up, down), (down, up), (down, down * tensor(-1.0, 1.0, 1.0))):
         f = brdf_eval(m, UP, wo, wi)
         assert not bool(f.diffuse.any()) and not bool(f.specular.any())
@@ -217,7 +266,8 @@ def test_brdf_is_zero_below_the_surface() -> None:
     assert bool((f.diffuse > 0).all()) and bool((f.specular > 0).all())
 
 
-def test_brdf_is_reciprocal() -> None:
+@pytest.mark.parametrize("brdf", MODELS)
+def test_brdf_is_reciprocal(brdf: BRDFModel) -> None:
     gen = torch.Generator().manual_seed(5)
     n = unit(0.2, 0.4, 0.9)
     frame = orthonormal_frame(n)
@@ -225,7 +275,7 @@ def test_brdf_is_reciprocal() -> None:
         return v[..., :1] * frame[1] + v[..., 1:2] * frame[2] + v[..., 2:] * frame[0]
     wo, wi = world(random_upper(256, gen)), world(random_upper(256, gen))
     m = Material(torch.rand(256, 3, generator=gen, dtype=DTYPE),
-                 0.089 + 0.911 * torch.rand(256, generator=gen, dtype=DTYPE))
+                 0.089 + 0.911 * torch.rand(256, generator=gen, dtype=DTYPE), brdf)
     a, b = brdf_eval(m, n, wo, wi), brdf_eval(m, n, wi, wo)
     torch.testing.assert_close(a.diffuse, b.diffuse, rtol=1e-13, atol=0.0)
     torch.testing.assert_close(a.specular, b.specular, rtol=1e-12, atol=0.0)
@@ -242,17 +292,27 @@ def test_brdf_matches_the_formula_of_the_design_doc() -> None:
     k = (r + 1) ** 2 / 8
     nl, nv = float(wi[2]), float(wo[2])
     G = nl / (nl * (1 - k) + k) * nv / (nv * (1 - k) + k)
-    f = brdf_eval(Material(albedo, tensor(r)[0]), n, wo, wi)
+    f = brdf_eval(Material(albedo, tensor(r)[0], OFFICIAL_BRDF), n, wo, wi)
     torch.testing.assert_close(f.diffuse, albedo / math.pi, rtol=1e-14, atol=0.0)
     torch.testing.assert_close(f.specular, torch.full((3,), F * D * G / (4 * nl * nv), dtype=DTYPE),
                                rtol=1e-12, atol=0.0)
     torch.testing.assert_close(f.total, f.diffuse + f.specular)
+    # the default model: Burley's diffuse and the exact Smith G1 = 2c / (c + sqrt(a^2 + (1 - a^2) c^2))
+    a2 = r**4
+    G = math.prod(2 * c / (c + math.sqrt(a2 + (1 - a2) * c * c)) for c in (nl, nv))
+    fd90 = 0.5 + 2 * r * float(wi @ h) ** 2
+    burley = (1 + (fd90 - 1) * (1 - nl) ** 5) * (1 + (fd90 - 1) * (1 - nv) ** 5)
+    f = brdf_eval(Material(albedo, tensor(r)[0]), n, wo, wi)
+    torch.testing.assert_close(f.diffuse, albedo / math.pi * burley, rtol=1e-13, atol=0.0)
+    torch.testing.assert_close(f.specular, torch.full((3,), F * D * G / (4 * nl * nv), dtype=DTYPE),
+                               rtol=1e-12, atol=0.0)
 
 
 # --------------------------------------------------------------------------- gradients
 
 
-def test_brdf_gradcheck() -> None:
+@pytest.mark.parametrize("brdf", MODELS)
+def test_brdf_gradcheck(brdf: BRDFModel) -> None:
     """float64 gradients w.r.t. albedo, roughness, n, wo and wi, at directions away from the kinks."""
     gen = torch.Generator().manual_seed(6)
     B = 4
@@ -262,7 +322,7 @@ def test_brdf_gradcheck() -> None:
     wo = random_upper(B, gen, min_cos=0.2).requires_grad_()
     wi = random_upper(B, gen, min_cos=0.2).requires_grad_()
     def f(albedo, rough, n, wo, wi):
-        v = brdf_eval(Material(albedo, rough), n, wo, wi)
+        v = brdf_eval(Material(albedo, rough, brdf), n, wo, wi)
         return v.diffuse, v.specular
     assert torch.autograd.gradcheck(f, (albedo, rough, n, wo, wi), eps=1e-6, atol=1e-7, rtol=1e-5)
 

@@ -18,7 +18,7 @@ from nefii.render.envmap import Environment, rotate_z
 from nefii.relight.pathtracer import PathSettings, trace_paths
 from nefii.relight.pathtracer_reference import trace_paths_reference
 from nefii.relight.render import render_relit
-from nefii.render.brdf import Material
+from nefii.render.brdf import BRDFModel, Material
 from nefii.render.equirect import direction_to_uv, pixel_directions, uv_to_direction
 from nefii.render.estimator import estimate_Lo
 
@@ -68,9 +68,9 @@ def sky(height: int = 16, width: int = 32, sun: bool = False) -> torch.Tensor:
     return img
 
 
-def constant(albedo, roughness: float):
+def constant(albedo, roughness: float, brdf: BRDFModel = BRDFModel()):
     a = torch.tensor(albedo, dtype=torch.float32)
-    return lambda x, n: Material(a.expand(len(x), 3), torch.full((len(x),), roughness))
+    return lambda x, n: Material(a.expand(len(x), 3), torch.full((len(x),), roughness), brdf)
 
 
 def mean_and_se(values: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
@@ -89,7 +89,7 @@ def test_white_furnace_in_a_room_with_a_skylight():
     K = intrinsics_from_fov(math.radians(100.0), 16, 16)
     rays = centre_rays(c2w, K, 16, 64)
     env = Environment.from_image(torch.ones(8, 16, 3))
-    white = constant([1.0, 1.0, 1.0], 0.5)
+    white = constant([1.0, 1.0, 1.0], 0.5, BRDFModel(diffuse="lambert"))        # Burley's is not energy-conserving
     gen = torch.Generator().manual_seed(0)
     full = trace_paths(rays, geometry, white, env, gen, PathSettings(max_bounces=64, rr_depth=1, specular=False))
     assert bool(full.hit.all())

@@ -5,7 +5,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
-from ..render.brdf import Material, roughness_from_logit
+from ..render.brdf import BRDFModel, Material, roughness_from_logit
 from .encodings import FourierFeatures, HashGrid
 from .features import FeatureField
 from .mlp import mlp
@@ -25,11 +25,15 @@ class MaterialField(nn.Module):
     thin wall, close together in space, are pushed apart by twice the offset, so they no
     longer share the encoding's coarse cells: without it a bowl's outside takes the colour of its
     inside and the light's lower hemisphere absorbs the difference.
+
+    ``brdf``: the lobes the decoded parameters feed (carried by every :class:`Material` it returns).
     """
 
     def __init__(self, encoding: HashGrid | FourierFeatures, hidden: int, layers: int,
-                 box: tuple[Tensor, Tensor], features: FeatureField | None = None, normal_offset: float = 0.0) -> None:
+                 box: tuple[Tensor, Tensor], features: FeatureField | None = None, normal_offset: float = 0.0,
+                 brdf: BRDFModel = BRDFModel()) -> None:
         super().__init__()
+        self.brdf = brdf
         self.encoding, self.features, self.normal_offset = encoding, features, float(normal_offset)
         self.net = mlp(encoding.out_dim + (features.dim if features is not None else 0), 4, hidden, layers)
         self.register_buffer("box_lo", torch.as_tensor(box[0], dtype=torch.float32))
@@ -54,4 +58,4 @@ class MaterialField(nn.Module):
             roughness = roughness_from_logit(out[..., 3])
         else:
             roughness = torch.full_like(out[..., 3], roughness_override)
-        return Material(albedo=albedo, roughness=roughness)
+        return Material(albedo, roughness, self.brdf)

@@ -62,6 +62,15 @@ class LightConfig:
 
 
 @dataclass
+class BRDFConfig:
+    diffuse: Literal["burley", "lambert"] = "burley"
+    """diffuse lobe: ``burley`` (Disney, with retro-reflection) or ``lambert`` (the official code)"""
+    shadowing: Literal["smith", "schlick"] = "smith"
+    """GGX shadowing-masking: ``smith`` (exact) or ``schlick`` (Schlick-GGX, k = (r+1)^2/8, the official code,
+    which pulls a fit's roughness glossy under an environment; docs/experiments.md, 2026-11-25)"""
+
+
+@dataclass
 class FitConfig:
     preset: Literal["cpu", "paper", "tiny"] = "cpu"
     """the preset these values started from"""
@@ -122,6 +131,8 @@ class FitConfig:
     SDF and feeds its feature vector f to the material and the cache, as the paper does"""
     material: NetworkConfig = field(default_factory=NetworkConfig)
     """material field M"""
+    brdf: BRDFConfig = field(default_factory=BRDFConfig)
+    """the BRDF's diffuse lobe and shadowing term (``paper``: the official code's Lambert and Schlick-GGX)"""
     material_offset: Annotated[float, Range(0, 1)] = 0.0
     """M encodes ``x + offset * n`` (n the shading normal), offset as a fraction of the scene's bounding-box
     diagonal: the faces of a thin wall then do not share the encoding's coarse cells (0: encode x, the paper)"""
@@ -194,7 +205,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "tonemap": "none", "loss": "l1", "smooth_albedo": 0.0, "roughness_warmup": 50 / 120,
         "material": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 8},
         "cache": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 4},
-        "light": {"sharpness_max": 3000.0},
+        "light": {"sharpness_max": 3000.0}, "brdf": {"diffuse": "lambert", "shadowing": "schlick"},
     },
     "tiny": {
         "steps": 20, "batch_pixels": 64, "background_pixels": 16, "num_samples": 2, "unobserved_points": 64,
@@ -207,7 +218,7 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 """``cpu``: designed for 2 CPU cores (hash grids, small MLPs, N = 8; the side-aware material offset, and on a
 reconstruction the lookup's normals smoothed so the offset does not carry its normal noise); ``paper``: the
-paper's networks and sample counts, for a GPU; ``tiny``: tests. What each choice measured is logged in
+paper's networks and sample counts and the official code's BRDF, for a GPU; ``tiny``: tests. What each choice measured is logged in
 docs/experiments.md."""
 
 

@@ -55,14 +55,13 @@ def material_at(model: NeFIIModel, position: Float[Tensor, "N 3"], lookup_normal
     """:func:`decode_material` over many points in chunks, without gradient, on the model's device.
     ``progress(n)`` is called with the number of points done after each chunk."""
     device = next(model.parameters()).device
-    albedo, roughness = [], []
+    parts = []
     for part, nrm in zip(position.split(chunk), lookup_normal.split(chunk)):
-        m = decode_material(model, part.to(device=device, dtype=torch.float32),
-                            nrm.to(device=device, dtype=torch.float32))
-        albedo.append(m.albedo)
-        roughness.append(m.roughness)
+        parts.append(decode_material(model, part.to(device=device, dtype=torch.float32),
+                                     nrm.to(device=device, dtype=torch.float32)))
         if progress is not None:
             progress(len(part))
-    if not albedo:
-        return Material(torch.zeros(0, 3, device=device), torch.zeros(0, device=device))
-    return Material(torch.cat(albedo), torch.cat(roughness))
+    if not parts:
+        return decode_material(model, position.new_zeros(0, 3, device=device, dtype=torch.float32),
+                               lookup_normal.new_zeros(0, 3, device=device, dtype=torch.float32))
+    return Material(torch.cat([m.albedo for m in parts]), torch.cat([m.roughness for m in parts]), parts[0].brdf)

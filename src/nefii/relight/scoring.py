@@ -81,7 +81,7 @@ def scaled_material(material: MaterialFn, scale: np.ndarray | None) -> MaterialF
     def scaled(x: torch.Tensor, n: torch.Tensor) -> Material:
         m = material(x, n)
         s = torch.as_tensor(scale, dtype=m.albedo.dtype, device=m.albedo.device)
-        return Material((m.albedo * s).clamp(0.0, 1.0), m.roughness)
+        return Material((m.albedo * s).clamp(0.0, 1.0), m.roughness, m.brdf)
 
     return scaled
 

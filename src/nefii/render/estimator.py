@@ -119,7 +119,7 @@ def sample_mis_directions(n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"],
 def _terms(samples: DirectionSamples, material: Material, n: Float[Tensor, "*bs 3"], L_i: Float[Tensor, "*bs S 3"],
            f0: float | Tensor) -> tuple[Float[Tensor, "*bs S 3"], Float[Tensor, "*bs S 3"]]:
     """Per-direction ``weight f_r L_i (wi . n)`` of the diffuse and specular lobes (not yet divided by N)."""
-    m = Material(albedo=material.albedo.unsqueeze(-2), roughness=material.roughness.unsqueeze(-1))
+    m = Material(material.albedo.unsqueeze(-2), material.roughness.unsqueeze(-1), material.brdf)
     n_s = n.unsqueeze(-2)
     f = brdf_eval(m, n_s, samples.wo.unsqueeze(-2), samples.wi, f0)
     c = (samples.weight * dot(n_s, samples.wi).clamp_min(0.0)).unsqueeze(-1)
