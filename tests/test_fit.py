@@ -16,7 +16,7 @@ from fit_fixtures import write_rendered_scene
 from nefii.cli.main import main
 from nefii.evaluate.table1 import METRIC_KEYS
 from nefii.errors import InputError
-from nefii.fit.config import FitConfig, config_from_dict, config_to_dict, resolve_config
+from nefii.fit.config import FitConfig, config_from_dict, config_to_dict, resolve_config, saved_config_from_dict
 from nefii.fit.distributed import DistContext, local_device
 from nefii.fit.losses import SecondaryHitBuffer, SmoothnessPrior, smoothness
 from nefii.fit.path_trace import SurfacePoints
@@ -120,6 +120,18 @@ def test_config_round_trips_and_rejects_unknown_fields():
     with pytest.raises(ValueError):
         resolve_config("cpu", ["indirect=maybe"])
     assert isinstance(resolve_config("cpu", []), FitConfig)
+
+
+def test_the_brdf_of_each_preset_and_of_runs_saved_before_it_was_a_setting():
+    """``cpu`` fits the exact Smith G and Burley's diffuse, ``paper`` the official pair; a config saved
+    without ``brdf`` (an older run) reads back as the official pair it was fitted with, one with it as saved."""
+    cpu, paper = resolve_config("cpu", []), resolve_config("paper", [])
+    assert (cpu.brdf.diffuse, cpu.brdf.shadowing) == ("burley", "smith")
+    assert (paper.brdf.diffuse, paper.brdf.shadowing) == ("lambert", "schlick")
+    old = config_to_dict(cpu)
+    del old["brdf"]
+    assert saved_config_from_dict(old).brdf == paper.brdf
+    assert saved_config_from_dict(config_to_dict(cpu)) == cpu
 
 
 def test_policies():

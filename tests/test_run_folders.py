@@ -16,22 +16,8 @@ import torch
 from fit_fixtures import write_rendered_scene
 from nefii.io.checkpoints import list_checkpoints
 from nefii.io.lock import LOCK_FILE
-from test_bad_input import assert_one_line_error, cli
+from test_bad_input import assert_one_line_error, cli, run, scene  # noqa: F401 (fixtures: a tiny scene, a finished tiny fit)
 from test_checkpoints import Payload
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    return write_rendered_scene(tmp_path_factory.mktemp("scene") / "scene", res=16, n_train=6, n_test=2)
-
-
-@pytest.fixture(scope="module")
-def run(scene, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("run") / "run"
-    r = cli(["fit", scene, "--out", out, *TINY, "--set", "checkpoint_every_s=0"])
-    assert r.rc == 0, r.err
-    return out
-
 
 TINY = ["--preset", "tiny", "--quiet", "--set", "threads=1"]
 

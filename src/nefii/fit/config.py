@@ -227,6 +227,12 @@ def config_from_dict(values: dict[str, Any]) -> FitConfig:
     return dataclass_from_dict(FitConfig, values)
 
 
+def saved_config_from_dict(values: dict[str, Any]) -> FitConfig:
+    """A config a run saved: one written before the ``brdf`` settings existed was fitted with the official
+    code's BRDF, so it reads back with that, not with today's default."""
+    return config_from_dict({"brdf": {"diffuse": "lambert", "shadowing": "schlick"}, **values})
+
+
 def config_to_dict(cfg: FitConfig) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 

@@ -27,7 +27,7 @@ from ..io.exr import write_exr
 from ..io.safe_load import load_tensors
 from ..render.sg import SGMixture
 from .build import build_model, make_encoding
-from .config import FitConfig, config_from_dict, config_to_dict
+from .config import FitConfig, config_to_dict, saved_config_from_dict
 from .geometry_source import GeometrySource
 from .model import NeFIIModel
 
@@ -63,7 +63,7 @@ def write_config(folder: Path, cfg: FitConfig) -> None:
 def read_config(folder: Path) -> FitConfig:
     path = folder / "config.json"
     try:
-        return config_from_dict(json.loads(path.read_text()))
+        return saved_config_from_dict(json.loads(path.read_text()))
     except FileNotFoundError:
         raise InputError(path, "not found: is this a nefii run folder?") from None
     except (ValueError, KeyError, TypeError) as e:     # JSONDecodeError is a ValueError
@@ -94,7 +94,7 @@ def load_run(folder: str | Path, device: torch.device | str = "cpu") -> FittedRu
         raise InputError(path, "not found: has `nefii fit` finished in this folder?")
     blob = load_tensors(path)
     try:
-        cfg = config_from_dict(blob["config"])
+        cfg = saved_config_from_dict(blob["config"])
         features = None
         if blob.get("sdf") is not None:
             from ..sdf.config import geometry_config_from_dict
