@@ -3,6 +3,7 @@ layout: enough for end-to-end runs of fit and eval in seconds. Not a ground-trut
 (that is ``nefii synth``, rendered by Mitsuba): it only has to be consistent."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -15,7 +16,7 @@ from nefii.camera import intrinsics_from_fov, look_at, pixel_rays
 from nefii.raycast import MeshGeometry, Rays, spawn_rays
 from nefii.io.exr import write_exr
 from nefii.io.images import write_png
-from nefii.render.brdf import Material
+from nefii.render.brdf import BRDFModel, Material
 from nefii.render.estimator import estimate_Lo
 from nefii.render.sg import SGMixture, sg_eval, sg_to_equirect
 
@@ -54,7 +55,7 @@ def scene_material(x: torch.Tensor, n: torch.Tensor | None = None) -> Material:
 
 
 def render(geometry: MeshGeometry, env: SGMixture, c2w: torch.Tensor, K: torch.Tensor, res: int,
-           gen: torch.Generator, spp: int = 16):
+           gen: torch.Generator, spp: int = 16, brdf: BRDFModel = BRDFModel()):
     o, d = pixel_rays(c2w, K, res, res)
     o, d = o.reshape(-1, 3).float(), d.reshape(-1, 3).float()
     hit = geometry.intersect(Rays(o, d))
@@ -67,7 +68,7 @@ def render(geometry: MeshGeometry, env: SGMixture, c2w: torch.Tensor, K: torch.T
         rays = spawn_rays(x.unsqueeze(1).expand_as(wi), ng.unsqueeze(1).expand_as(wi), wi, 1e-4 * geometry.scale)
         return sg_eval(wi, env) * (~geometry.occluded(rays)).unsqueeze(-1)
 
-    mat = scene_material(x)
+    mat = dataclasses.replace(scene_material(x), brdf=brdf)
     est = estimate_Lo(n, -d[v], mat, env, incoming, spp, gen)
     rgb[v] = est.rgb
     spec[v] = est.specular

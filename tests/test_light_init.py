@@ -2,6 +2,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 from scipy.optimize import nnls
 
@@ -9,6 +10,7 @@ from fit_fixtures import render, scene_mesh
 from nefii.camera import intrinsics_from_fov, look_at, pixel_rays
 from nefii.fit.light_init import estimate_light, nnls_fista, sg_from_light
 from nefii.raycast import MeshGeometry, Rays
+from nefii.render.brdf import BRDFModel
 from nefii.render.sg import SGMixture, sg_integral
 
 
@@ -24,7 +26,12 @@ def test_nnls_matches_scipy():
     assert (x >= 0).all()
 
 
-def test_a_hard_sun_is_found_from_shading_and_shadows():
+@pytest.mark.parametrize("brdf, share", [(BRDFModel(diffuse="lambert"), 0.5), (BRDFModel(), 0.4)])
+def test_a_hard_sun_is_found_from_shading_and_shadows(brdf: BRDFModel, share: float):
+    """On photos of Lambertian shading (the model the initialisation fits) the sharp lobe holds most of the
+    energy, as the scene's sun does (75%). Burley's diffuse, darker at grazing light, steepens the sun's
+    shading falloff and the least-squares fit spreads some of it over other directions: the sun is still
+    found, with 45% of the energy (measured 2026-11-25), which the fit then corrects."""
     mesh = scene_mesh()
     geometry = MeshGeometry(mesh.vertices, mesh.faces)
     sun = torch.tensor([-0.5, 0.45, 0.74])
@@ -41,7 +48,7 @@ def test_a_hard_sun_is_found_from_shading_and_shadows():
         a = 2 * math.pi * k / 6
         eye = torch.tensor([2.6 * math.cos(a), 2.6 * math.sin(a), 1.3], dtype=torch.float64)
         c2w = look_at(eye, torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-        rgb, mask, *_ = render(geometry, env, c2w, K, 24, gen, spp=8)
+        rgb, mask, *_ = render(geometry, env, c2w, K, 24, gen, spp=8, brdf=brdf)
         o, d = pixel_rays(c2w, K, 24, 24)
         hit = geometry.intersect(Rays(o.reshape(-1, 3).float(), d.reshape(-1, 3).float()))
         v = hit.valid
@@ -58,4 +65,4 @@ def test_a_hard_sun_is_found_from_shading_and_shadows():
     assert math.degrees(math.acos(float(init.axis[sharp][0] @ sun))) < 6.0
     # most of the energy sits in the sharp lobe, as in the scene
     energy = init.amplitude.mean(-1) * sg_integral(init.sharpness)
-    assert energy[sharp].sum() > 0.5 * energy.sum()
+    assert energy[sharp].sum() > share * energy.sum()
