@@ -81,6 +81,8 @@ def test_secondary_buffer_starts_its_ring_at_slot_zero_and_keeps_the_newest_of_a
     buf = SecondaryHitBuffer(capacity=4)
     buf.add(_points([]))                                 # nothing added: still empty, nothing allocated
     assert len(buf) == 0 and buf.state_dict() is None
+    with pytest.raises(RuntimeError, match="before any secondary hit"):
+        buf.sample(2, None)
     buf.add(_points([7.0]))
     state = buf.state_dict()
     assert state["next"] == 1 and state["size"] == 1

@@ -162,7 +162,8 @@ class SecondaryHitBuffer:
         self._size = min(self._size + n, self.capacity)
 
     def sample(self, n: int, generator: torch.Generator | None) -> SurfacePoints:
-        assert self._items is not None and self._size > 0, "sample() from an empty buffer"
+        if self._items is None or self._size == 0:
+            raise RuntimeError("SecondaryHitBuffer.sample() before any secondary hit was added (check len() first)")
         idx = torch.randint(self._size, (n,), generator=generator, device=self._items.position.device)
         return self._items[idx]
 
