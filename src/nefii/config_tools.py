@@ -63,10 +63,16 @@ def check_memory(nbytes: float, what: str, sizes: str) -> None:
                          f"{have / 2**30:.0f} GiB: lower {sizes}")
 
 
+def _closest(word: str, options: typing.Iterable[str]) -> str | None:
+    """The option nearest ``word`` (difflib's ratio >= 0.6), or None."""
+    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.6)
+    return close[0] if close else None
+
+
 def nearest(word: str, options: typing.Iterable[str]) -> str:
     """``; did you mean 'X'?`` for the closest of ``options``, or nothing."""
-    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.6)
-    return f"; did you mean '{close[0]}'?" if close else ""
+    close = _closest(word, options)
+    return f"; did you mean '{close}'?" if close else ""
 
 
 def _problem(value: Any, hint: Any) -> str | None:
@@ -109,7 +115,8 @@ def validate(obj: Any, where: str = "") -> None:
 
 
 def dataclass_from_dict(cls: type[T], values: dict[str, Any], where: str = "") -> T:
-    """``cls`` built from a (possibly partial, nested) dict; unknown keys raise ``KeyError``."""
+    """``cls`` built from a (possibly partial, nested) dict; unknown keys raise ``KeyError``, and a nested
+    section's own checks (its ``__post_init__``) raise ``ValueError`` prefixed with the section's path."""
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     kwargs: dict[str, Any] = {}
     for key, value in values.items():
@@ -120,7 +127,12 @@ def dataclass_from_dict(cls: type[T], values: dict[str, Any], where: str = "") -
             kwargs[key] = dataclass_from_dict(sub, value, f"{where}{key}.")  # type: ignore[arg-type]
         else:
             kwargs[key] = value
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ValueError as e:
+        if not where:
+            raise
+        raise ValueError(f"{where}{e}") from None
 
 
 def parse_value(text: str, current: Any) -> Any:
@@ -169,5 +181,5 @@ def apply_overrides(values: dict[str, Any], overrides: list[str]) -> None:
 
 def _suggest(parts: list[str], i: int, word: str, options: list[str]) -> str:
     """``; did you mean 'a.b.c'?`` with part ``i`` of the dotted key replaced by the nearest option."""
-    close = difflib.get_close_matches(word, options, n=1, cutoff=0.6)
-    return f"; did you mean '{'.'.join(parts[:i] + [close[0]] + parts[i + 1:])}'?" if close else ""
+    close = _closest(word, options)
+    return f"; did you mean '{'.'.join(parts[:i] + [close] + parts[i + 1:])}'?" if close else ""

@@ -9,7 +9,6 @@ from ..fields.encodings import FourierFeatures, HashGrid
 from ..fields.environment import EnvmapEnvironment, SGEnvironment
 from ..fields.features import FeatureField
 from ..fields.material import MaterialField
-from ..render.brdf import BRDFModel
 from .config import EncodingConfig, FitConfig
 from .model import NeFIIModel
 
@@ -33,7 +32,7 @@ def build_model(cfg: FitConfig, box: tuple[Tensor, Tensor], features: FeatureFie
     torch.manual_seed(cfg.seed)
     material = MaterialField(make_encoding(cfg.material.encoding), cfg.material.hidden, cfg.material.layers,
                              material_box, features, normal_offset=offset,
-                             brdf=BRDFModel(cfg.brdf.diffuse, cfg.brdf.shadowing))
+                             brdf=cfg.brdf)
     cache = RadianceCache(make_encoding(cfg.cache.encoding), cfg.cache_dir_freqs, cfg.cache.hidden,
                           cfg.cache.layers, box, features)
     if cfg.light.kind == "sg":

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
 from ..config_tools import Range, apply_overrides, check_memory, dataclass_from_dict, nearest, validate
+from ..render.brdf import BRDFModel
 
 
 @dataclass
@@ -59,15 +60,6 @@ class LightConfig:
     """shading init: sharpness of the lobes put on bright directions (a sun)"""
     envmap_height: Annotated[int, Range(2, 4096)] = 32
     """envmap: rows of the learnable equirectangular grid (columns: twice as many)"""
-
-
-@dataclass
-class BRDFConfig:
-    diffuse: Literal["burley", "lambert"] = "burley"
-    """diffuse lobe: ``burley`` (Disney, with retro-reflection) or ``lambert`` (the official code)"""
-    shadowing: Literal["smith", "schlick"] = "smith"
-    """GGX shadowing-masking: ``smith`` (exact) or ``schlick`` (Schlick-GGX, k = (r+1)^2/8, the official code,
-    which pulls a fit's roughness glossy under an environment; docs/experiments.md, 2026-11-25)"""
 
 
 @dataclass
@@ -131,8 +123,9 @@ class FitConfig:
     SDF and feeds its feature vector f to the material and the cache, as the paper does"""
     material: NetworkConfig = field(default_factory=NetworkConfig)
     """material field M"""
-    brdf: BRDFConfig = field(default_factory=BRDFConfig)
-    """the BRDF's diffuse lobe and shadowing term (``paper``: the official code's Lambert and Schlick-GGX)"""
+    brdf: BRDFModel = field(default_factory=BRDFModel)
+    """the BRDF's diffuse lobe and shadowing term (``paper``: the official code's Lambert and Schlick-GGX, which
+    pulls a fit's roughness glossy under an environment; docs/experiments.md, 2026-11-25)"""
     material_offset: Annotated[float, Range(0, 1)] = 0.0
     """M encodes ``x + offset * n`` (n the shading normal), offset as a fraction of the scene's bounding-box
     diagonal: the faces of a thin wall then do not share the encoding's coarse cells (0: encode x, the paper)"""

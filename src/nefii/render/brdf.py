@@ -31,6 +31,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from ..config_tools import validate
 from .frame import dot, normalize
 
 F0_DIELECTRIC = 0.16 * 0.5**2
@@ -50,10 +51,7 @@ class BRDFModel:
     """``smith``: exact separable Smith for GGX; ``schlick``: Schlick-GGX, k = (r+1)^2/8 (official code)"""
 
     def __post_init__(self) -> None:
-        if self.diffuse not in ("burley", "lambert"):
-            raise ValueError(f"brdf.diffuse: {self.diffuse!r} is not one of burley, lambert")
-        if self.shadowing not in ("smith", "schlick"):
-            raise ValueError(f"brdf.shadowing: {self.shadowing!r} is not one of smith, schlick")
+        validate(self)
 
 
 OFFICIAL_BRDF = BRDFModel(diffuse="lambert", shadowing="schlick")
