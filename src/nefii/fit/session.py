@@ -14,7 +14,6 @@ from torch import Tensor
 from ..data import load_scene
 from ..data.fingerprint import DataFingerprint, fingerprint, require_same
 from ..data.scene import SceneData
-from ..errors import InputError
 from ..io.checkpoints import LoadedCheckpoint
 from ..raycast import MeshGeometry
 from ..raycast.base import Geometry
@@ -118,10 +117,6 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
             say(f"lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
     trainer = Trainer(cfg, model, geometry, pixels, device, dist)
     if checkpoint is not None:
-        try:
-            trainer.load_state_dict(checkpoint.state)
-        except (KeyError, RuntimeError, TypeError, ValueError) as e:
-            raise InputError(checkpoint.path, f"does not fit this run's model ({type(e).__name__}: "
-                                              f"{str(e).splitlines()[0][:160]})") from None
+        checkpoint.restore(trainer.load_state_dict, "this run's model")
         say(f"resumed from {checkpoint.path} at step {trainer.step}")
     return FitSession(cfg, scene, source, geometry, box, pixels, trainer, data_print)

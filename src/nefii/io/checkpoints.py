@@ -69,6 +69,15 @@ class LoadedCheckpoint:
     def step(self) -> int:
         return int(self.state["step"])
 
+    def restore(self, load_state_dict: Callable[[dict[str, Any]], None], what: str) -> None:
+        """``load_state_dict(self.state)``; a state that does not fit (other shapes, missing keys) is an
+        :class:`InputError` naming this file: ``does not fit WHAT (...)``."""
+        try:
+            load_state_dict(self.state)
+        except (KeyError, RuntimeError, TypeError, ValueError) as e:
+            raise InputError(self.path, f"does not fit {what} ({type(e).__name__}: "
+                                        f"{str(e).splitlines()[0][:160]})") from None
+
 
 def load_latest_checkpoint(folder: Path, warn: Callable[[str], None] = lambda s: None) -> LoadedCheckpoint | None:
     """The newest checkpoint that loads, and its state; None when there is none. Each newer one that does not

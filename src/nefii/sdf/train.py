@@ -19,7 +19,6 @@ from tqdm import tqdm
 
 from ..camera import pixel_rays
 from ..data.scene import SceneData
-from ..errors import InputError
 from ..io.checkpoints import LoadedCheckpoint, save_checkpoint
 from .config import GeometryConfig
 from .losses import GeometryLoss, geometry_loss, level_set_area, normal_variation
@@ -158,11 +157,7 @@ class GeometryTrainer:
 
     def resume(self, checkpoint: LoadedCheckpoint) -> None:
         """Continue from ``checkpoint`` (see :func:`nefii.io.checkpoints.load_latest_checkpoint`)."""
-        try:
-            self.load_state_dict(checkpoint.state)
-        except (KeyError, RuntimeError, TypeError, ValueError) as e:
-            raise InputError(checkpoint.path, f"does not fit this geometry run ({type(e).__name__}: "
-                                              f"{str(e).splitlines()[0][:160]})") from None
+        checkpoint.restore(self.load_state_dict, "this geometry run")
 
     def fit(self, folder: Path, progress: bool = True) -> None:
         folder.mkdir(parents=True, exist_ok=True)
