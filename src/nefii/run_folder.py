@@ -19,7 +19,7 @@ from typing import Callable, Iterator
 from .data.fingerprint import DataFingerprint
 from .errors import InputError
 from .io.atomic import write_text_atomic
-from .io.checkpoints import list_checkpoints
+from .io.checkpoints import LoadedCheckpoint, latest_checkpoint, list_checkpoints, load_latest_checkpoint
 from .io.lock import LOCK_FILE, RunLock
 
 MANIFEST_FILE = "run.json"
@@ -98,3 +98,30 @@ def writing_run(folder: Path, kind: str, resume: bool,
         lock.release()
         if created and folder.is_dir() and not any(folder.iterdir()):
             folder.rmdir()
+
+
+def _label(kind: str) -> str:
+    return "run" if kind == "fit" else f"{kind} run"
+
+
+def resume_point(folder: Path, kind: str, manifest: RunManifest | None, warn: Callable[[str], None],
+                 say: Callable[[str], None]) -> LoadedCheckpoint | None:
+    """What ``--resume`` continues from: the newest checkpoint of ``folder`` that loads (each newer one that
+    does not is passed to ``warn``), or None, said, for a run that failed before its first checkpoint. A
+    folder holding no run (``manifest`` None), or checkpoints none of which loads, is an :class:`InputError`."""
+    if manifest is None:
+        raise InputError(folder, f"no {_label(kind)} to resume here")
+    ckpt = folder / "checkpoints"
+    found = load_latest_checkpoint(ckpt, warn=warn)
+    if found is None:
+        if list_checkpoints(ckpt):
+            raise InputError(ckpt, "no checkpoint in it loads (all truncated or corrupt): start a new run")
+        say("the run wrote no checkpoint before it stopped: starting from the first step")
+    return found
+
+
+def after_failure(folder: Path) -> str:
+    """What a run that stopped on an error can do next: resume from its last good checkpoint, or start over."""
+    last = latest_checkpoint(folder / "checkpoints")
+    return (f"the last good checkpoint is {last} (--resume continues from it)" if last is not None else
+            "no checkpoint was written: run the same command again to start over")

@@ -17,8 +17,8 @@ from ..fit.preview import write_preview
 from ..fit.session import prepare_fit
 from ..fit.trainer import NonFiniteLoss
 from ..io.atomic import write_text_atomic
-from ..io.checkpoints import LoadedCheckpoint, latest_checkpoint, list_checkpoints, load_latest_checkpoint
-from ..run_folder import RunManifest, write_manifest, writing_run
+from ..io.checkpoints import load_latest_checkpoint
+from ..run_folder import RunManifest, after_failure, resume_point, write_manifest, writing_run
 from .common import pick_device, set_threads
 
 
@@ -73,19 +73,6 @@ def _warn(line: str) -> None:
     print(f"nefii fit: warning: {line}", file=sys.stderr)
 
 
-def _resume_point(args: argparse.Namespace, manifest: RunManifest | None) -> LoadedCheckpoint | None:
-    """The newest checkpoint of ``--out`` that loads (None: a run that failed before its first one)."""
-    ckpt_dir = args.out / "checkpoints"
-    if manifest is None:
-        raise InputError(args.out, "no run to resume here")
-    found = load_latest_checkpoint(ckpt_dir, warn=_warn)
-    if found is None:
-        if list_checkpoints(ckpt_dir):
-            raise InputError(ckpt_dir, "no checkpoint in it loads (all truncated or corrupt): start a new run")
-        print("nefii fit: the run wrote no checkpoint before it stopped: starting from the first step")
-    return found
-
-
 def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: RunManifest | None) -> int:
     out: Path = args.out
     cfg = resumed_config(args, cfg)
@@ -95,7 +82,7 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: R
     checkpoint = None
     if args.resume:
         if ctx.is_main:
-            checkpoint = _resume_point(args, manifest)
+            checkpoint = resume_point(out, "fit", manifest, _warn, lambda line: print(f"nefii fit: {line}"))
         else:   # the other ranks read the same file rank 0 chose
             checkpoint = load_latest_checkpoint(out / "checkpoints")
     recorded = None if manifest is None or manifest.data is None or checkpoint is None else (out, manifest.data)
@@ -121,10 +108,7 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: R
     try:
         trainer.fit(ckpt_dir, log=logger, progress=not args.quiet, preview=preview)
     except NonFiniteLoss as e:
-        last = latest_checkpoint(ckpt_dir)
-        where = (f"the last good checkpoint is {last} (--resume continues from it)" if last is not None else
-                 "no checkpoint was written: run the same command again to start over")
-        say(f"nefii fit: error: {e}; {where}")
+        say(f"nefii fit: error: {e}; {after_failure(out)}")
         return 1
     finally:
         if logger is not None:

@@ -18,9 +18,8 @@ from ..data import load_scene
 from ..data.fingerprint import fingerprint, require_same
 from ..errors import InputError
 from ..io.atomic import atomic_path, write_text_atomic
-from ..io.checkpoints import latest_checkpoint, list_checkpoints, load_latest_checkpoint
 from ..raycast.mesh import check_faces
-from ..run_folder import RunManifest, write_manifest, writing_run
+from ..run_folder import RunManifest, after_failure, resume_point, write_manifest, writing_run
 from ..sdf.config import GEOMETRY_PRESETS, GeometryConfig, resolve_geometry_config
 from ..sdf.extract import extract_mesh
 from ..sdf.from_mesh import MeshObjective, mesh_signed_distances
@@ -92,15 +91,9 @@ def _geometry(args: argparse.Namespace, cfg: GeometryConfig, device: torch.devic
     ckpt = out / "checkpoints"
     checkpoint = None
     if args.resume:
-        if manifest is None:
-            raise InputError(out, "no geometry run to resume here")
-        if (out / "config.json").is_file():
+        if manifest is not None and (out / "config.json").is_file():
             cfg = _read_config(out / "config.json")
-        checkpoint = load_latest_checkpoint(ckpt, warn=_warn)
-        if checkpoint is None and list_checkpoints(ckpt):
-            raise InputError(ckpt, "no checkpoint in it loads (all truncated or corrupt): start a new run")
-        if checkpoint is None:
-            print("nefii geometry: the run wrote no checkpoint before it stopped: starting from the first step")
+        checkpoint = resume_point(out, "geometry", manifest, _warn, lambda line: print(f"nefii geometry: {line}"))
     threads = set_threads(cfg.threads)
     scene = load_scene(args.data, "train")
     t0 = time.time()
@@ -139,10 +132,7 @@ def _geometry(args: argparse.Namespace, cfg: GeometryConfig, device: torch.devic
     try:
         trainer.fit(ckpt, progress=not args.quiet)
     except FloatingPointError as e:
-        last = latest_checkpoint(ckpt)
-        where = (f"the last good checkpoint is {last} (--resume continues from it)" if last is not None else
-                 "no checkpoint was written: run the same command again to start over")
-        print(f"nefii geometry: error: {e}; {where}")
+        print(f"nefii geometry: error: {e}; {after_failure(out)}")
         return 1
     save_sdf(out, cfg, model.sdf, norm, source)
     try:
