@@ -1,6 +1,6 @@
 """Where the material error comes from: the ``cpu`` fit with one unknown at a time replaced by the truth.
 
-    python -m benchmarks.error_budget run SCENE_DIR ROW --seed S --out DIR [--steps N] [--eval-spp 32]
+    python -m benchmarks.error_budget run SCENE_DIR ROW --seed S --out DIR [--steps N] [--eval-spp 32] [--set k=v]
     python -m benchmarks.error_budget table RUNS_DIR       # -> benchmarks/results/error_budget.md
 
 Rows (each a fit of the ``cpu`` preset, scored by ``nefii.evaluate.run.evaluate_run`` on the test views):
@@ -53,7 +53,7 @@ from nefii.relight.environment import load_environment
 from nefii.render.envmap import Environment
 from nefii.relight.pathtracer import PathSettings, trace_paths
 from nefii.relight.render import render_relit
-from nefii.render.brdf import ROUGHNESS_MIN, ROUGHNESS_RANGE, Material, roughness_from_logit
+from nefii.render.brdf import ROUGHNESS_MIN, ROUGHNESS_RANGE, BRDFModel, Material, roughness_from_logit
 from nefii.render.equirect import pixel_directions
 
 from .common import code_version, machine, stamp, write_results
@@ -75,9 +75,10 @@ class TrueMaterial(nn.Module):
     """The scene's material with the material field's call signature; ``free_roughness`` adds a learned,
     zero-initialised residual to the roughness logit (the drift row)."""
 
-    def __init__(self, lookup: MaterialOnMesh, box: tuple[Tensor, Tensor], free_roughness: bool) -> None:
+    def __init__(self, lookup: MaterialOnMesh, box: tuple[Tensor, Tensor], free_roughness: bool,
+                 brdf: BRDFModel) -> None:
         super().__init__()
-        self.lookup = lookup
+        self.lookup, self.brdf = lookup, brdf
         self.residual = None
         if free_roughness:
             self.encoding = HashGrid(12, 2, 16, 8, 128)
@@ -97,7 +98,7 @@ class TrueMaterial(nn.Module):
             rough = roughness_from_logit(roughness_logit(rough) + self.residual(self.encoding((x - self.lo) / self.size))[..., 0])
         if roughness_override is not None:
             rough = torch.full_like(rough, roughness_override)
-        return Material(m.albedo.to(x), rough)
+        return Material(m.albedo.to(x), rough, self.brdf)
 
 
 def true_environment(data: Path, device: torch.device, height: int = 256) -> Environment:
@@ -233,8 +234,8 @@ def floor_scores(data: Path, spp: int, seed: int) -> dict:
 
 
 def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift_steps: int, eval_spp: int,
-            device: torch.device) -> dict:
-    overrides = [f"seed={seed}", "preview_every=0", "checkpoint_every_s=1e9"]
+            device: torch.device, extra: list[str] = ()) -> dict:
+    overrides = [f"seed={seed}", "preview_every=0", "checkpoint_every_s=1e9", *extra]
     if steps is not None:
         overrides.append(f"steps={steps}")
     if row in ("drift", "material_known"):
@@ -247,7 +248,8 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
     session = prepare_fit(cfg, data, device=device)
     cfg, model, geometry = session.config, session.model, session.geometry
     if row in ("drift", "material_known"):
-        model.material = TrueMaterial(MaterialOnMesh(load_material(data), geometry), session.box, row == "drift")
+        model.material = TrueMaterial(MaterialOnMesh(load_material(data), geometry), session.box, row == "drift",
+                                      cfg.brdf)
     if row in ("drift", "light_known"):
         model.env = TrueEnvironment(true_environment(data, device))
     if row in ("drift", "indirect_known"):
@@ -339,6 +341,8 @@ def main() -> None:
     r.add_argument("--eval-spp", type=int, default=32)
     r.add_argument("--threads", type=int, default=2)
     r.add_argument("--device", default="cpu")
+    r.add_argument("--set", dest="overrides", action="append", default=[],
+                   help="config override for the fit rows, e.g. brdf.shadowing=schlick (the true material reads it too)")
     t = sub.add_parser("table")
     t.add_argument("runs", type=Path)
     t.add_argument("--where", default="", help="where and how the runs ran, for the record")
@@ -358,7 +362,7 @@ def main() -> None:
         scores = floor_scores(args.data, spp=64, seed=args.seed)
     else:
         scores = fit_row(args.data, args.row, args.seed, out, args.steps, args.drift_steps, args.eval_spp,
-                         torch.device(args.device))
+                         torch.device(args.device), args.overrides)
     blob = {"scene": args.data.name, "row": args.row, "seed": args.seed, "scores": scores, "wall_s": time.time() - t0}
     (out / "scores.json").write_text(json.dumps(blob, indent=2) + "\n")
     print(json.dumps(blob))
