@@ -21,6 +21,7 @@ from nefii.fit.distributed import DistContext, local_device
 from nefii.fit.losses import SecondaryHitBuffer, SmoothnessPrior, smoothness
 from nefii.fit.path_trace import SurfacePoints
 from nefii.fit.policies import Alternation, RoughnessWarmup
+from nefii.fit.session import prepare_fit
 
 
 @pytest.fixture(scope="module")
@@ -129,9 +130,30 @@ def test_the_brdf_of_each_preset_and_of_runs_saved_before_it_was_a_setting():
     assert (cpu.brdf.diffuse, cpu.brdf.shadowing) == ("burley", "smith")
     assert (paper.brdf.diffuse, paper.brdf.shadowing) == ("lambert", "schlick")
     old = config_to_dict(cpu)
-    del old["brdf"]
+    del old["brdf"], old["unobserved_material"]
     assert saved_config_from_dict(old).brdf == paper.brdf
+    assert saved_config_from_dict(old).unobserved_material == "all"
     assert saved_config_from_dict(config_to_dict(cpu)) == cpu
+
+
+def test_eq8_moves_what_of_the_material_it_is_asked_to(tiny_scene):
+    """The unobserved step (Eq. 8) trains the cache whatever ``unobserved_material`` says; the material's
+    albedo with ``all`` (the official code's neither-side-detached) and ``albedo``, its roughness with
+    ``all`` only, nothing of it with ``none``."""
+    assert resolve_config("cpu", []).unobserved_material == "albedo"
+    assert resolve_config("paper", []).unobserved_material == "all"
+    for learn in ("all", "albedo", "none"):
+        cfg = resolve_config("tiny", [f"unobserved_material={learn}", "unobserved_every=2", "roughness_warmup=0"])
+        trainer = prepare_fit(cfg, tiny_scene).trainer
+        assert trainer.train_step().kind == "observed"                  # fills the secondary-hit buffer
+        model = trainer.model
+        last = list(model.material.net.parameters())[-2]                 # output layer's weight: 3 albedo rows, roughness
+        assert trainer.train_step().kind == "unobserved"
+        assert any(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in model.cache.parameters())
+        grad = last.grad if last.grad is not None else torch.zeros_like(last)
+        albedo_rows, roughness_row = grad[:3].abs().sum(), grad[3].abs().sum()
+        assert bool(albedo_rows > 0) == (learn in ("all", "albedo")), learn
+        assert bool(roughness_row > 0) == (learn == "all"), learn
 
 
 def test_policies():

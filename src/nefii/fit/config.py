@@ -80,6 +80,11 @@ class FitConfig:
     """K: every K-th step trains on unobserved rays instead (paper K = 10)"""
     unobserved: bool = True
     """ablation: train on unobserved rays at all"""
+    unobserved_material: Literal["all", "albedo", "none"] = "albedo"
+    """what of the material Eq. 8 moves at the secondary hits: ``all`` (the official code: neither side
+    detached), ``albedo`` (roughness held fixed there), ``none``. The cache sees a point's outgoing radiance
+    through a few Fourier frequencies of direction, so pulling roughness towards it blurs a glossy lobe and
+    kept the fit's roughness rough (docs/experiments.md, 2026-11-25)"""
     indirect: bool = True
     """ablation: secondary hits see the radiance cache (off: black)"""
     visibility: bool = True
@@ -199,6 +204,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "material": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 8},
         "cache": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 4},
         "light": {"sharpness_max": 3000.0}, "brdf": {"diffuse": "lambert", "shadowing": "schlick"},
+        "unobserved_material": "all",
     },
     "tiny": {
         "steps": 20, "batch_pixels": 64, "background_pixels": 16, "num_samples": 2, "unobserved_points": 64,
@@ -221,9 +227,11 @@ def config_from_dict(values: dict[str, Any]) -> FitConfig:
 
 
 def saved_config_from_dict(values: dict[str, Any]) -> FitConfig:
-    """A config a run saved: one written before the ``brdf`` settings existed was fitted with the official
-    code's BRDF, so it reads back with that, not with today's default."""
-    return config_from_dict({"brdf": {"diffuse": "lambert", "shadowing": "schlick"}, **values})
+    """A config a run saved: a setting missing from it reads back as the behaviour the run was fitted with,
+    not today's default (the official BRDF before ``brdf`` existed; Eq. 8 training all of the material before
+    ``unobserved_material`` existed)."""
+    return config_from_dict({"brdf": {"diffuse": "lambert", "shadowing": "schlick"},
+                             "unobserved_material": "all", **values})
 
 
 def config_to_dict(cfg: FitConfig) -> dict[str, Any]:

@@ -127,7 +127,8 @@ def observed_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], target: F
 
 
 def unobserved_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], tone: str, kind: str) -> LossTerms:
-    """Eq. 8: the distance between path tracing at secondary hits and the cache there; neither side detached."""
+    """Eq. 8: the distance between path tracing at secondary hits and the cache there; neither side detached
+    here (what of the material the path-traced side reaches is the caller's choice: ``unobserved_material``)."""
     l = render_distance(traced, cache_rgb, tone, kind)
     zero = l.new_zeros(())
     return LossTerms(l, l, zero, zero)
