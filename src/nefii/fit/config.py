@@ -80,9 +80,9 @@ class FitConfig:
     """K: every K-th step trains on unobserved rays instead (paper K = 10)"""
     unobserved: bool = True
     """ablation: train on unobserved rays at all"""
-    unobserved_material: Literal["all", "albedo", "none"] = "albedo"
+    unobserved_material: Literal["all", "albedo"] = "albedo"
     """what of the material Eq. 8 moves at the secondary hits: ``all`` (the official code: neither side
-    detached), ``albedo`` (roughness held fixed there), ``none``. The cache sees a point's outgoing radiance
+    detached) or ``albedo`` (roughness held fixed there). The cache sees a point's outgoing radiance
     through a few Fourier frequencies of direction, so pulling roughness towards it blurs a glossy lobe and
     kept the fit's roughness rough (docs/experiments.md, 2026-11-25)"""
     indirect: bool = True

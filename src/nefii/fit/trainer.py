@@ -72,12 +72,11 @@ class Trainer:
         j = torch.randint(max(len(px.bg_dirs), 1), (nb,), generator=g, device=self.device)
         return px.select(i, j)
 
-    def _trace(self, pts: SurfacePoints, rough: float | None, learn: str = "all"):
-        """The material at ``pts`` and the estimator's colour there (Eq. 2-4); ``learn`` says which of the
-        material's parameters the estimate's gradient reaches: ``all``, ``albedo`` or ``none``."""
-        with torch.set_grad_enabled(learn != "none" and torch.is_grad_enabled()):
-            material = decode_material(self.model, pts.position, pts.lookup_normal, rough)
-        if learn == "albedo":
+    def _trace(self, pts: SurfacePoints, rough: float | None, train_roughness: bool = True):
+        """The material at ``pts`` and the estimator's colour there (Eq. 2-4); with ``train_roughness`` False
+        the estimate's gradient reaches the albedo but not the roughness."""
+        material = decode_material(self.model, pts.position, pts.lookup_normal, rough)
+        if not train_roughness:
             material = Material(material.albedo, material.roughness.detach(), material.brdf)
         traced = path_trace(self.model, self.geometry, pts, material, self.cfg.num_samples, self.generator,
                             self.transport)
@@ -89,7 +88,7 @@ class Trainer:
         if self.alternation.unobserved(step) and len(self.buffer) > 0:
             # ---- Eq. 8: secondary hits drawn from the buffer, path-traced against the cache there
             pts = self.buffer.sample(cfg.unobserved_points, self.generator)
-            _, traced = self._trace(pts, rough, learn=cfg.unobserved_material)
+            _, traced = self._trace(pts, rough, train_roughness=cfg.unobserved_material == "all")
             terms = unobserved_loss(traced, model.cache(pts.position, pts.normal, pts.wo), cfg.tonemap, cfg.loss)
             kind = "unobserved"
         else:
