@@ -116,10 +116,6 @@ class FitConfig:
     keeps the hash grid from memorising Monte Carlo noise"""
     smooth_radius: Annotated[float, Range(0, 1)] = 0.01
     """jitter of the smoothness prior, as a fraction of the scene's bounding-box diagonal"""
-    smooth_edge: Annotated[float, Range(0)] = 0.05
-    """albedo difference above which the smoothness prior's cost grows only logarithmically, so a texture's
-    edges keep their contrast while small drifts (shading leaking into the albedo) are held flat (0: plain L1,
-    which flattened textured scenes; docs/experiments.md, 2026-11-26)"""
     secondary_buffer: Annotated[int, Range(1)] = 65536
     """secondary hits kept for the unobserved step"""
     ray_offset: Annotated[float, Range(0, 0.1)] = 1e-4
@@ -233,9 +229,9 @@ def config_from_dict(values: dict[str, Any]) -> FitConfig:
 def saved_config_from_dict(values: dict[str, Any]) -> FitConfig:
     """A config a run saved: a setting missing from it reads back as the behaviour the run was fitted with,
     not today's default (the official BRDF before ``brdf`` existed; Eq. 8 training all of the material before
-    ``unobserved_material`` existed; the L1 smoothness prior before ``smooth_edge`` existed)."""
+    ``unobserved_material`` existed)."""
     return config_from_dict({"brdf": {"diffuse": "lambert", "shadowing": "schlick"},
-                             "unobserved_material": "all", "smooth_edge": 0.0, **values})
+                             "unobserved_material": "all", **values})
 
 
 def config_to_dict(cfg: FitConfig) -> dict[str, Any]:

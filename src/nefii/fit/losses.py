@@ -82,14 +82,12 @@ class LossTerms:
 
 @dataclass(frozen=True)
 class SmoothnessPrior:
-    """``weight rho(a(x) - a(x + d))``, ``d ~ N(0, radius^2)`` per axis of the tangent plane at ``x``: albedo
-    smoothness along the surface, never through a thin wall to its other face (``rho``: :func:`smoothness`)."""
+    """``weight |a(x) - a(x + d)|_1``, ``d ~ N(0, radius^2)`` per axis of the tangent plane at ``x``: albedo
+    smoothness along the surface, never through a thin wall to its other face."""
 
     weight: float = 0.0
     radius: float = 0.01
     """in world units"""
-    edge: float = 0.0
-    """albedo difference where ``rho``'s slope has halved (0: plain L1)"""
 
     @property
     def active(self) -> bool:
@@ -104,20 +102,9 @@ class SmoothnessPrior:
         return position + d
 
 
-def smoothness(albedo: Float[Tensor, "B 3"], neighbour_albedo: Float[Tensor, "B 3"], weight: float,
-               edge: float = 0.0) -> Tensor:
-    """The prior's value from the albedo at the points and at their neighbours: the mean over points and
-    channels of ``rho(t) = edge log(1 + |t| / edge)`` (``|t|`` when ``edge`` is 0), times ``weight``.
-
-    ``rho`` is L1 for differences well below ``edge`` and grows only logarithmically above it (slope
-    ``edge / (edge + |t|)``): small differences, which is what shading leaking into the albedo makes, are
-    held flat, while a texture's edges cost little and keep their contrast (the Retinex assumption: shading
-    varies smoothly, reflectance in steps). Plain L1 charges an edge in proportion to its contrast and
-    flattened textured scenes (docs/experiments.md, 2026-11-26)."""
-    t = (albedo - neighbour_albedo).abs()
-    if edge > 0:
-        t = edge * torch.log1p(t / edge)
-    return weight * t.mean()
+def smoothness(albedo: Float[Tensor, "B 3"], neighbour_albedo: Float[Tensor, "B 3"], weight: float) -> Tensor:
+    """The prior's value from the albedo at the points and at their neighbours."""
+    return weight * (albedo - neighbour_albedo).abs().mean()
 
 
 def observed_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], target: Float[Tensor, "B 3"],

@@ -61,7 +61,7 @@ class Trainer:
         self.warmup = RoughnessWarmup(int(round(cfg.roughness_warmup * cfg.steps)))
         self.alternation = Alternation(cfg.unobserved_every, cfg.unobserved)
         self.transport = transport_of(cfg)
-        self.prior = SmoothnessPrior(cfg.smooth_albedo, cfg.smooth_radius * geometry.scale, cfg.smooth_edge)
+        self.prior = SmoothnessPrior(cfg.smooth_albedo, cfg.smooth_radius * geometry.scale)
         self.step = 0
 
     # ---- one step
@@ -100,7 +100,7 @@ class Trainer:
             if self.prior.active:
                 near = self.prior.neighbours(pts.position, pts.normal, self.generator)
                 smooth = smoothness(material.albedo, decode_material(model, near, pts.lookup_normal, rough).albedo,
-                                    self.prior.weight, self.prior.edge)
+                                    self.prior.weight)
             terms = observed_loss(traced, model.cache(pts.position, pts.normal, pts.wo), batch.rgb,
                                   model.env.radiance(batch.bg_dirs), batch.bg_rgb, cfg.tonemap, cfg.loss,
                                   cfg.beta1, cfg.beta2, smooth)
