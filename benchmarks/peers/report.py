@@ -136,7 +136,7 @@ def write_report(scenes: list[str], command: str | None = None, elapsed_s: float
              "and channel by median(gt/pred)) on the same test views against the same mesh. Not on the same rays: "
              "the nefii rows are `nefii eval`'s, each pixel the mean of 4 x 4 sub-pixel rays as the ground truth's "
              "layers are, while the peer's albedo and roughness (and both albedo-over-time curves) are read at "
-             "pixel-centre hits (`benchmarks.peers.hits`), a protocol that scores even the true material 10-14 dB "
+             "pixel-centre hits (`benchmarks.peers.hits`), a protocol that scores even the true material 9.7-14.0 dB "
              "lower on these scenes (error_budget.md, truth_point against truth_filtered): the peer's material "
              "columns and the curves are not comparable with the nefii rows'. "
              "nefii rows: `benchmarks.quality` runs (`cpu` preset; env-map grid = `light.kind=envmap`; PhySG-style "
