@@ -1,7 +1,9 @@
-"""The test split as ``nefii eval`` sees it, cast once: pixel-centre rays (``nefii.camera.pixel_rays``)
-against the frozen mesh, the pixels it scores (``eval_mask``) and the ground truth (``ground_truth``).
-Both systems' materials are read at these hits: nefii's field by ``material_at`` at the hits' lookup
-normals, the peer's textures at the hits' atlas UVs (:func:`hit_uv`)."""
+"""The test split as ``nefii eval`` sees it, cast once: ``k x k`` stratified sub-pixel rays per pixel
+(``nefii.evaluate.render_views.subpixel_samples``, the rays ``nefii eval`` averages) against the frozen mesh,
+the pixels it scores (``eval_mask``) and the ground truth (``ground_truth``). Both systems' materials are
+read at these hits, nefii's field by ``material_at`` at the hits' lookup normals, the peer's textures at the
+hits' atlas UVs (:func:`hit_uv`), and averaged per pixel (:func:`scatter`), as the ground truth's layers
+average each pixel's samples."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,21 +11,27 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from nefii.camera import pixel_rays
+from nefii.camera import jittered_pixel_rays
 from nefii.data.material import barycentrics
 from nefii.data.scene import SceneData
+from nefii.evaluate.render_views import subpixel_grid, subpixel_samples
 from nefii.evaluate.run import eval_mask, ground_truth
 from nefii.evaluate.table1 import ViewArrays, mean_scores, view_scores
 from nefii.raycast import Geometry, Rays
 from nefii.synth.meshes import TriMesh
 
+SUBPIXELS = subpixel_grid(16)
+"""``k``: rays per pixel ``k x k``, as ``nefii eval`` at 16 spp or more"""
+
 
 @dataclass(frozen=True)
 class ViewHits:
-    """One test view's pixel-centre rays where they hit the mesh (row-major order)."""
+    """One test view's sub-pixel rays where they hit the mesh."""
 
     valid: np.ndarray
-    """(H, W) bool"""
+    """(H, W) bool: at least half of the pixel's rays hit (``nefii eval``'s object mask)"""
+    pixel: np.ndarray
+    """(M,) int64: the flat pixel ``i W + j`` of each hit"""
     position: np.ndarray
     """(M, 3) float64"""
     triangle: np.ndarray
@@ -40,15 +48,20 @@ class TestViews:
     gt: list[ViewArrays]
 
 
-def cast_test_views(scene: SceneData, geometry: Geometry) -> TestViews:
-    """Pixel-centre rays of every view of ``scene`` (its test split) against ``geometry``."""
+def cast_test_views(scene: SceneData, geometry: Geometry, k: int = SUBPIXELS, seed: int = 0) -> TestViews:
+    """``k x k`` sub-pixel rays (pixel centres when ``k == 1``) of every view of ``scene`` (its test split)
+    against ``geometry``; the strata's jitter drawn from ``seed``."""
+    generator = torch.Generator().manual_seed(seed)
     hits, masks, gt = [], [], []
     for v in range(len(scene)):
-        o, d = pixel_rays(scene.cameras.c2w[v], scene.cameras.K[v], scene.height, scene.width)
-        hit = geometry.intersect(Rays(o.reshape(-1, 3).float(), d.reshape(-1, 3).float()))
+        pixel, u = subpixel_samples(scene.height * scene.width, k, generator, "cpu")
+        o, d = jittered_pixel_rays(scene.cameras.c2w[v], scene.cameras.K[v], scene.width, pixel, u)
+        hit = geometry.intersect(Rays(o.float(), d.float()))
         ok = hit.valid.numpy()
-        hits.append(ViewHits(ok.reshape(scene.height, scene.width), hit.position.numpy()[ok].astype(np.float64),
-                             hit.triangle_id.numpy()[ok], hit.lookup_normal.numpy()[ok]))
+        count = np.bincount(pixel.numpy()[ok], minlength=scene.height * scene.width)
+        hits.append(ViewHits((count >= 0.5 * k * k).reshape(scene.height, scene.width), pixel.numpy()[ok],
+                             hit.position.numpy()[ok].astype(np.float64), hit.triangle_id.numpy()[ok],
+                             hit.lookup_normal.numpy()[ok]))
         masks.append(eval_mask(scene, v, hits[-1].valid))
         gt.append(ground_truth(scene, v))
     return TestViews(hits, masks, gt)
@@ -64,10 +77,15 @@ def hit_uv(hits: ViewHits, mesh: TriMesh) -> np.ndarray:
 
 
 def scatter(hits: ViewHits, values: np.ndarray) -> np.ndarray:
-    """Per-hit values into an ``(H, W[, C])`` image, 0 where the ray misses (as nefii eval writes)."""
-    out = np.zeros(hits.valid.shape + values.shape[1:], np.float32)
-    out[hits.valid] = values
-    return out
+    """Per-hit values into an ``(H, W[, C])`` image: each pixel the mean over its rays that hit, 0 where none
+    does (as ``nefii eval`` writes)."""
+    n = hits.valid.size
+    flat = values.reshape(len(values), -1).astype(np.float64)
+    sums = np.zeros((n, flat.shape[1]))
+    np.add.at(sums, hits.pixel, flat)
+    count = np.bincount(hits.pixel, minlength=n)
+    mean = sums / np.maximum(count, 1)[:, None]
+    return mean.astype(np.float32).reshape(hits.valid.shape + values.shape[1:])
 
 
 def positions(views: TestViews) -> tuple[torch.Tensor, torch.Tensor]:

@@ -35,10 +35,13 @@ from pathlib import Path
 import numpy as np
 
 from .. import common, quality
+from .hits import SUBPIXELS
 from .mitsuba_peer import PeerConfig
 from .report import SCENES, peer_dir, write_report
 
 NEFII_CONFIGS = ("full", "light_envmap", "physg")
+HITS_PROTOCOL = f"{SUBPIXELS}x{SUBPIXELS} sub-pixel rays, averaged per pixel"
+"""how the material is read (``benchmarks.peers.hits``); a cached run read another way is rerun"""
 
 
 def gib(maxrss_kib: int) -> float:
@@ -105,7 +108,7 @@ def peer_worker(data: Path, out: Path, budget_s: float, cfg: PeerConfig, eval_sp
         "scene": test.root.name, "data": str(data), "budget_s": budget_s, "fit_s": fit.fit_s, "steps": fit.steps,
         "setup_s": setup_s, "peak_rss_gib_fit": peak_fit,
         "peak_rss_gib_with_eval": gib(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss),
-        "config": config_record(cfg), "eval_spp": eval_spp, "max_steps": max_steps,
+        "config": config_record(cfg), "eval_spp": eval_spp, "max_steps": max_steps, "hits": HITS_PROTOCOL,
         "loss_all_training_views": {"before": loss_before, "after": loss_after, "spp": 16},
         "mesh": {"vertices": len(geometry.vertices), "triangles": len(geometry.faces),
                  "atlas_vertices": len(mesh.vertices)},
@@ -128,6 +131,7 @@ def curve_worker(data: Path, out: Path, threads: int, every: int, overrides: lis
     write_curve_csv(out / "nefii_curve.csv", points)
     write_text_atomic(out / "nefii_curve.json", json.dumps({
         "data": str(data), "preset": cfg.preset, "threads": threads, "steps": points[-1].step, "fit_s": fit_s,
+        "hits": HITS_PROTOCOL,
         "peak_rss_gib": gib(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss), "every": every, "sets": overrides,
         "code": common.code_version()}, indent=2) + "\n")
 
@@ -158,7 +162,8 @@ def peer_is_current(out: Path, data: Path, budget_s: float, cfg: PeerConfig, eva
         return False
     res = json.loads(f.read_text())
     same = {k: v for k, v in res["config"].items() if k in dataclasses.asdict(cfg)} == dataclasses.asdict(cfg)
-    return same and abs(res["budget_s"] - budget_s) < 1.0 and res["eval_spp"] == eval_spp and res["data"] == str(data)
+    return same and abs(res["budget_s"] - budget_s) < 1.0 and res["eval_spp"] == eval_spp and \
+        res["data"] == str(data) and res.get("hits") == HITS_PROTOCOL
 
 
 def curve_is_current(out: Path, data: Path, extra: list[str]) -> bool:
@@ -166,7 +171,7 @@ def curve_is_current(out: Path, data: Path, extra: list[str]) -> bool:
     if not (f.is_file() and (out / "nefii_curve.csv").is_file()):
         return False
     rec = json.loads(f.read_text())
-    return rec["data"] == str(data) and rec.get("sets", []) == extra
+    return rec["data"] == str(data) and rec.get("sets", []) == extra and rec.get("hits") == HITS_PROTOCOL
 
 
 def budget_for(name: str, override: float | None) -> float:

@@ -3,8 +3,8 @@
 ``nefii fit`` keeps no history of its material, so the curve comes from a second run of the same
 recipe, set up as ``nefii fit`` sets it up (``nefii.fit.session.prepare_fit``), then
 ``Trainer.train_step`` until ``cfg.steps``. Every ``every`` steps the clock stops and the material is
-decoded at the test views' pixel-centre hits (``nefii.fit.model.material_at``) and scored. It writes no
-checkpoints, previews or logs, so its steps are a little cheaper than ``nefii fit``'s; its last point is
+decoded at the test views' sub-pixel hits (``nefii.fit.model.material_at``), averaged per pixel and
+scored. It writes no checkpoints, previews or logs, so its steps are a little cheaper than ``nefii fit``'s; its last point is
 the quantity the quality run's albedo PSNR measures (same seed, same code).
 """
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Score the peer's recovered scene with ``nefii eval``'s own loop (``nefii.evaluate.run``).
 
-* Albedo and roughness: its textures at the test views' pixel-centre hits (``views``), where ``nefii eval``
-  reads nefii's material field.
+* Albedo and roughness: its textures at the test views' sub-pixel hits (``views``), averaged per pixel, as
+  ``nefii eval`` reads nefii's material field.
 * Novel-view colour and the specular layer: Mitsuba renders the recovered scene (textures and env map) from
   the test cameras with the integrator that made the ground truth (``nefii.synth.mitsuba_layers``, path
   tracing to depth 12), un-premultiplied by its coverage as the ground-truth maps are.
@@ -47,7 +47,7 @@ def evaluate(test: SceneData, views: TestViews, uvs: list[np.ndarray], mesh: Tri
             scores.append(score_and_write_view(tmp, test.indices[v], test.names[v], pred, views.gt[v],
                                                views.masks[v]))
         notes = {"system": "Mitsuba 3 prb peer (benchmarks.peers.mitsuba_inverse)",
-                 "albedo": "textures at the pixel-centre hits; aligned per view and channel by median(gt/pred) "
+                 "albedo": "textures at 4 x 4 sub-pixel hits averaged per pixel; aligned per view and channel by median(gt/pred) "
                            "over the mask, linear; scored in sRGB",
                  "rgb": f"Mitsuba path tracing of the recovered scene, depth {RENDER_DEPTH}, {spp} spp, "
                         "un-premultiplied by coverage",

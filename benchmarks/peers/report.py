@@ -133,12 +133,9 @@ def write_report(scenes: list[str], command: str | None = None, elapsed_s: float
              + (f" in {elapsed_s / 60:.1f} min" if elapsed_s is not None else "")
              + f"; current code {common.code_version()}.", "",
              "Every row is scored by nefii's eval code (`nefii.evaluate.run`: masked block, albedo aligned per view "
-             "and channel by median(gt/pred)) on the same test views against the same mesh. Not on the same rays: "
-             "the nefii rows are `nefii eval`'s, each pixel the mean of 4 x 4 sub-pixel rays as the ground truth's "
-             "layers are, while the peer's albedo and roughness (and both albedo-over-time curves) are read at "
-             "pixel-centre hits (`benchmarks.peers.hits`), a protocol that scores even the true material 9.7-14.0 dB "
-             "lower on these scenes (error_budget.md, truth_point against truth_filtered): the peer's material "
-             "columns and the curves are not comparable with the nefii rows'. "
+             "and channel by median(gt/pred)) on the same test views against the same mesh, each pixel's material the "
+             "mean over 4 x 4 sub-pixel rays as the ground truth's layers are: `nefii eval`'s for the nefii rows, "
+             "`benchmarks.peers.hits` for the peer's textures and both albedo-over-time curves. "
              "nefii rows: `benchmarks.quality` runs (`cpu` preset; env-map grid = `light.kind=envmap`; PhySG-style "
              "= `visibility=off indirect=off`). The peer: Mitsuba's `prb` (llvm_ad_rgb) optimising a principled "
              "BSDF's base-colour and roughness textures over the xatlas atlas of `nefii export` and a "

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 import torch
-from jaxtyping import Bool, Float
+from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from ..camera import jittered_pixel_rays
@@ -51,6 +51,18 @@ def subpixel_grid(spp: int) -> int:
     return max(1, math.isqrt(min(max(spp, 1), MAX_SUBPIXELS)))
 
 
+def subpixel_samples(num_pixels: int, k: int, generator: torch.Generator | None, device: torch.device | str
+                     ) -> tuple[Int[Tensor, " R"], Float[Tensor, "R 2"]]:
+    """``k x k`` rays per pixel: each ray's flat pixel and its offset in the pixel (``[0, 1)^2``, float64), one
+    uniform point in each stratum; the pixel centre when ``k == 1``."""
+    pixel = torch.arange(num_pixels, device=device).repeat_interleave(k * k)
+    if k == 1:
+        return pixel, torch.full((num_pixels, 2), 0.5, dtype=torch.float64, device=device)
+    cell = torch.arange(k * k, device=device).repeat(num_pixels)
+    jitter = torch.rand(len(pixel), 2, generator=generator, device=device, dtype=torch.float32).double()
+    return pixel, (torch.stack([cell % k, cell // k], -1).double() + jitter) / k
+
+
 @torch.no_grad()
 def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: int, num_samples: int,
                 generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 4096
@@ -62,13 +74,7 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
     k = subpixel_grid(num_samples)
     per_ray = max(1, num_samples // (k * k))
     n_px = H * W
-    pixel = torch.arange(n_px, device=device).repeat_interleave(k * k)
-    if k == 1:
-        u = torch.full((n_px, 2), 0.5, dtype=torch.float64, device=device)
-    else:  # stratified: one uniform point in each of the k x k cells
-        cell = torch.arange(k * k, device=device).repeat(n_px)
-        jitter = torch.rand(len(pixel), 2, generator=generator, device=device, dtype=torch.float32).double()
-        u = (torch.stack([cell % k, cell // k], -1).double() + jitter) / k
+    pixel, u = subpixel_samples(n_px, k, generator, device)
     o, d = jittered_pixel_rays(cameras.c2w[view].to(device), cameras.K[view].to(device), W, pixel, u)
     o, d = o.float(), d.float()
     hit = geometry.intersect(Rays(o, d))
