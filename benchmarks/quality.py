@@ -8,7 +8,7 @@ Each (scene, config) is ``nefii fit`` (``cpu`` preset plus the ablation's switch
 the commit that fitted it). Writes ``benchmarks/results/quality.md`` with the masked Table 1 columns,
 wall time, peak memory and code version of every completed run of the default scenes and configs
 (so runs done at different times accumulate; those not run yet are listed), machine and versions. ``--jobs 2`` runs two fits at once with one thread each
-(two 2-thread processes on 2 cores slow each other down ~10x).
+(two 2-thread processes on 2 cores slowed each other down ~10x before nefii set OpenMP threads to wait passively; not remeasured since).
 """
 from __future__ import annotations
 
