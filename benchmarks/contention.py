@@ -80,6 +80,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.worker:
         print(json.dumps(worker(data, args.steps, args.threads)))
         return
+    if bad := [kv for kv in args.env if "=" not in kv]:
+        ap.error(f"--env {bad[0]}: expected KEY=VALUE")
     env = dict(kv.split("=", 1) for kv in args.env)
     results = {}
     for name, code in COMPETITORS.items():

@@ -3,8 +3,8 @@
 Importing nefii before torch makes OpenMP threads that wait at a barrier sleep instead of spinning
 (``OMP_WAIT_POLICY=PASSIVE``, unless the environment already sets it): with libgomp's spinning default, a fit
 beside one other busy process ran at 26% of its alone rate and beside a two-thread PyTorch process at 10%;
-passive, 79% and 93%, at a cost of about a quarter of the alone rate (11.0 -> 8.1 steps/s) (benchmarks/results/contention.md,
-docs/experiments.md 2026-11-26). libgomp reads the variable once, when torch loads it.
+passive, at 79% and 93%, for about a quarter of the alone rate (11.0 -> 8.1 steps/s; benchmarks/results/
+contention.md, docs/experiments.md 2026-11-26). libgomp reads the variable once, when torch loads it.
 """
 import os as _os
 
