@@ -65,10 +65,11 @@ def subpixel_samples(num_pixels: int, k: int, generator: torch.Generator | None,
 
 @torch.no_grad()
 def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: int, num_samples: int,
-                generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 4096
+                generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 512
                 ) -> ViewPrediction:
     """``num_samples`` estimator samples per pixel, spread over its sub-pixel rays (a single ray through the
-    pixel centre when ``num_samples < 4``)."""
+    pixel centre when ``num_samples < 4``). ``chunk`` rays at a time: 512 keeps a chunk's (directions x 128
+    lobes) tensors near the CPU's cache; 4096 took 1.6-1.8x as long a view at 256 spp."""
     H, W = cameras.height, cameras.width
     device = next(model.parameters()).device
     k = subpixel_grid(num_samples)
