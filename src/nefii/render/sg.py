@@ -47,14 +47,15 @@ def sg_lobes(w: Float[Tensor, "*bs 3"], sg: SGMixture) -> Float[Tensor, "*bs K"]
 
     Computed as ``exp(w . (lambda_k xi_k) - lambda_k)``: one 2-D matrix product that starts from
     ``-lambda_k`` (``addmm``), then the floor and the exp, in place when no gradient is wanted (the
-    estimator's pdfs, eval): 5-9x faster than a batched product followed by three passes on 2 CPU
-    cores, where these (directions x 128) tensors are the largest of a step. The exponent is floored at
+    estimator's pdfs, eval): for 512 x 48 directions and 128 lobes, 1.3 ms against 10.5 ms for a batched
+    product followed by three passes on 2 CPU threads (2.5 against 16.2 ms on one), with the same values;
+    these (directions x 128) tensors are the largest of a step. The exponent is floored at
     ``EXP_FLOOR`` (e^-60 ~ 1e-26, nothing next to any lobe's peak): on CPUs, exp of arguments far below
     -88 takes a slow path (25-50x slower), and sharp lobes (lambda in the thousands) put most arguments there.
     """
     scaled_axes = (sg.axis * sg.sharpness.unsqueeze(-1)).T                      # (3, K)
     x = torch.addmm(-sg.sharpness, w.reshape(-1, 3), scaled_axes).reshape(*w.shape[:-1], sg.num_lobes)
-    if torch.is_grad_enabled() and x.requires_grad:
+    if x.requires_grad:
         return x.clamp_min(EXP_FLOOR).exp()
     return x.clamp_min_(EXP_FLOOR).exp_()
 
