@@ -4,13 +4,12 @@
 
 Two evals of the same fitted run, each ``nefii eval RUN --data DATA --seed S`` (default spp) in a fresh
 process on a copy of the run whose saved thread count is set to 0 (all cores, what a default ``nefii fit``
-saves; eval uses the fit's), timed from process start to exit (what a user
-waits). The scene is the bowl at 128 x 128 with ``--views`` test views (synthesised once; Mitsuba needed the
-first time); the run is the quality benchmark's bowl fit if it exists, else one ``cpu``-preset fit made here.
-The Monte Carlo noise of the figures is stated twice: the difference of each metric between the two evals
-(seeds 0 and 1), and the PSNR of one eval's rendered colour against the other's. Writes
-``benchmarks/results/eval_speed.md``. Target (issue 28): 16 views at 128 x 128 within 2 min on 2 cores. Run it
-on an otherwise idle machine.
+saves; eval uses the fit's), timed from process start to exit (what a user waits). The scene is the bowl at
+128 x 128 with ``--views`` test views (synthesised once; Mitsuba needed the first time); the run is the
+quality benchmark's bowl fit if it exists, else one ``cpu``-preset fit made here. The Monte Carlo noise of
+the figures is stated twice: the difference of each metric between the two evals (seeds 0 and 1), and the
+PSNR of one eval's rendered colour against the other's. Writes ``benchmarks/results/eval_speed.md``. Target
+(issue 28): 16 views at 128 x 128 within 2 min on 2 cores. Run it on an otherwise idle machine.
 """
 from __future__ import annotations
 
@@ -26,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .common import CACHE, REPO, code_version, machine, scene, stamp, write_results
+from .quality import run_dir
 
 TARGET_S = 120.0
 KEYS = ("albedo_psnr", "roughness_mse", "specular_psnr", "rgb_psnr")
@@ -33,13 +33,14 @@ KEYS = ("albedo_psnr", "roughness_mse", "specular_psnr", "rgb_psnr")
 
 def fitted_run(data: Path) -> Path:
     """The quality benchmark's bowl fit, or a ``cpu``-preset fit of ``data`` made once into the cache."""
-    for run in (CACHE / "runs" / "bowl_full", CACHE / "runs" / "eval_speed_bowl"):
-        if (run / "model.pt").exists():
-            return run
+    quality = run_dir("bowl", "full")
+    if (quality / "model.pt").exists():
+        return quality
     run = CACHE / "runs" / "eval_speed_bowl"
-    print(f"fitting {data.name} once for the benchmark (cpu preset) into {run}", flush=True)
-    subprocess.run([sys.executable, "-m", "nefii.cli.main", "fit", str(data), "--out", str(run), "--quiet"],
-                   cwd=REPO, check=True)
+    if not (run / "model.pt").exists():
+        print(f"fitting {data.name} once for the benchmark (cpu preset) into {run}", flush=True)
+        subprocess.run([sys.executable, "-m", "nefii.cli.main", "fit", str(data), "--out", str(run), "--quiet"],
+                       cwd=REPO, check=True)
     return run
 
 
@@ -58,13 +59,15 @@ def timed_eval(run: Path, data: Path, seed: int, work: Path) -> tuple[float, Pat
     return time.perf_counter() - t0, copy / "eval"
 
 
-def render_psnr(a: Path, b: Path, views: int) -> float:
-    """PSNR of the rendered colour of eval ``a`` against eval ``b`` over all views (linear, peak 1)."""
+def render_psnr(a: Path, b: Path, indices: list[int]) -> float:
+    """PSNR of the rendered colour of eval ``a`` against eval ``b`` over the views ``indices`` (linear, peak 1)."""
+    from nefii.evaluate.metrics import psnr  # noqa: PLC0415
     from nefii.io.exr import read_exr  # noqa: PLC0415
 
-    err = [np.mean((read_exr(a / f"{v}_rgb.exr")[..., :3] - read_exr(b / f"{v}_rgb.exr")[..., :3]) ** 2)
-           for v in range(views)]
-    return float(10 * np.log10(1.0 / max(float(np.mean(err)), 1e-20)))
+    def stack(folder: Path) -> np.ndarray:
+        return np.stack([read_exr(folder / f"{i}_rgb.exr")[..., :3] for i in indices])
+
+    return psnr(stack(a), stack(b))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -83,8 +86,9 @@ def main(argv: list[str] | None = None) -> None:
             outs.append(out)
             print(f"eval seed {seed}: {s:.1f} s", flush=True)
         metrics = [json.loads((o / "metrics.json").read_text()) for o in outs]
-        views = len(metrics[0]["views"])
-        noise = render_psnr(outs[0], outs[1], views)
+        indices = [view["index"] for view in metrics[0]["views"]]
+        views = len(indices)
+        noise = render_psnr(outs[0], outs[1], indices)
     m0, m1 = metrics[0]["masked"], metrics[1]["masked"]
     worst = max(times)
     lines = [f"# eval_speed ({stamp()}, code {code_version()})", "", f"Machine: {machine()}.",
