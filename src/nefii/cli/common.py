@@ -42,17 +42,27 @@ class RenderFlags:
     """seeds the samples"""
     max_bounces: Annotated[int, Range(1, 1024)] = 8
     """relight: surface interactions per path"""
+    threads: Annotated[int, Range(0, 4096)] = 0
+    """CPU threads (0: the cores this process may use)"""
 
 
 def render_flags(args: argparse.Namespace) -> RenderFlags:
-    """``--spp``, ``--seed`` (and ``--max-bounces``) checked; a bad one is an input error naming the flag."""
-    flags = RenderFlags(args.spp, args.seed, getattr(args, "max_bounces", 8))
+    """``--spp``, ``--seed`` (and ``--max-bounces``, ``--threads``) checked; a bad one is an input error naming
+    the flag."""
+    threads = getattr(args, "threads", None)
+    flags = RenderFlags(args.spp, args.seed, getattr(args, "max_bounces", 8), 0 if threads is None else threads)
     try:
         validate(flags)
     except ValueError as e:
         name, problem = str(e).split(": ", 1)
         raise InputError(None, f"--{name.replace('_', '-')}: {problem}") from None
     return flags
+
+
+def add_threads_flag(p: argparse.ArgumentParser) -> None:
+    """``--threads N`` for a verb that renders a fitted run (default: the threads the run was fitted with)."""
+    p.add_argument("--threads", type=int, default=None,
+                   help="CPU threads (0: all cores this process may use; default: the fit's setting)")
 
 
 def set_threads(threads: int) -> int:

@@ -10,7 +10,7 @@ from tqdm import tqdm
 from ..data import load_scene
 from ..evaluate.run import evaluate_run
 from ..fit.outputs import load_run
-from .common import pick_device, render_flags, set_threads
+from .common import add_threads_flag, pick_device, render_flags, set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -21,6 +21,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="estimator samples per pixel; each draws one cosine, one GGX and one SG direction")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto")
     p.add_argument("--seed", type=int, default=0)
+    add_threads_flag(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -29,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
     render_flags(args)
     device = pick_device(args.device)
     fitted = load_run(args.run, device)
-    set_threads(fitted.config.threads)
+    set_threads(fitted.config.threads if args.threads is None else args.threads)
     scene = load_scene(args.data or fitted.data, "test")
     g = torch.Generator(device=device).manual_seed(args.seed)
     evaluate_run(fitted, scene, args.run / "eval", args.spp, g,

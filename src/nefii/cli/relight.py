@@ -36,7 +36,7 @@ from ..relight.render import render_relit
 from ..relight.scoring import (PROTOCOL, albedo_scale_from_eval, albedo_scale_from_ground_truth, merge_metrics,
                               metrics_entry, scaled_material, score_view, tone_map)
 from ..relight.cameras import Views, views_from_transforms
-from .common import pick_device, render_flags, set_threads
+from .common import add_threads_flag, pick_device, render_flags, set_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -62,6 +62,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "albedo); none: the fitted albedo as it is")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto")
     p.add_argument("--seed", type=int, default=0)
+    add_threads_flag(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -90,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         env = load_environment(args.envmap, args.rotate, args.exposure, device)
     _warn(caught)
     fitted = load_run(args.run, device)
-    set_threads(fitted.config.threads)
+    set_threads(fitted.config.threads if args.threads is None else args.threads)
     geometry = fitted.open_geometry()
     name = env_name(args.envmap, args.rotate, args.exposure)
 

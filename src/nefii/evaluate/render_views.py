@@ -11,6 +11,9 @@ built-in scenes (docs/experiments.md, 2026-11-25).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -21,7 +24,7 @@ from ..camera import jittered_pixel_rays
 from ..data.scene import Cameras
 from ..fit.model import NeFIIModel, decode_material
 from ..fit.path_trace import SurfacePoints, Transport, path_trace
-from ..raycast.base import Geometry, Rays
+from ..raycast.base import Geometry, Rays, SurfaceHit
 from ..render.frame import normalize
 
 MAX_SUBPIXELS = 16
@@ -63,13 +66,57 @@ def subpixel_samples(num_pixels: int, k: int, generator: torch.Generator | None,
     return pixel, (torch.stack([cell % k, cell // k], -1).double() + jitter) / k
 
 
+@dataclass(frozen=True)
+class _ChunkSums:
+    """One chunk of sub-pixel rays: each ray's pixel and what it saw (summed into the view in chunk order)."""
+
+    pixel: Int[Tensor, " R"]
+    rgb: Float[Tensor, "R 3"]
+    specular: Float[Tensor, "R 3"]
+    diffuse: Float[Tensor, "R 3"]
+    albedo: Float[Tensor, "R 3"]
+    normal: Float[Tensor, "R 3"]
+    cache: Float[Tensor, "R 3"]
+    roughness: Float[Tensor, " R"]
+
+
+@torch.no_grad()   # grad mode is per thread: the worker threads need their own
+def _render_chunk(model: NeFIIModel, geometry: Geometry, hit: SurfaceHit, d: Tensor, pixel: Tensor, c: Tensor,
+                  per_ray: int, seed: int, transport: Transport) -> _ChunkSums:
+    """The sub-pixel rays ``c`` (indices of hits), traced with a generator of their own seeded by ``seed``, so
+    the result does not depend on which thread renders the chunk or when."""
+    g = torch.Generator(device=d.device).manual_seed(seed)
+    pts = SurfacePoints.from_hit(hit, c, -d[c])
+    material = decode_material(model, pts.position, pts.lookup_normal)
+    traced = path_trace(model, geometry, pts, material, per_ray, g, transport)
+    return _ChunkSums(pixel[c], traced.radiance.rgb, traced.radiance.specular, traced.radiance.diffuse,
+                      material.albedo, pts.normal, model.cache(pts.position, pts.normal, pts.wo), material.roughness)
+
+
+@contextmanager
+def _one_intra_op_thread() -> Iterator[None]:
+    """Torch ops run on the calling thread only (restored afterwards): the chunks are the parallel work."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 @torch.no_grad()
 def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: int, num_samples: int,
-                generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 512
-                ) -> ViewPrediction:
+                generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 512,
+                workers: int | None = None) -> ViewPrediction:
     """``num_samples`` estimator samples per pixel, spread over its sub-pixel rays (a single ray through the
     pixel centre when ``num_samples < 4``). ``chunk`` rays at a time: 512 keeps a chunk's (directions x 128
-    lobes) tensors near the CPU's cache; 4096 took 1.2x as long a view at 256 spp on 2 threads."""
+    lobes) tensors near the CPU's cache; 4096 took 1.2x as long a view at 256 spp on 2 threads.
+
+    On the CPU the chunks are rendered by ``workers`` threads (default: torch's thread count), each running
+    its torch ops single-threaded: a chunk's tensors are too small for intra-op threads to pay, so one
+    process used about one core of two (docs/experiments.md, 2026-11-26). Every chunk draws from its own
+    generator, seeded from ``generator``, and the chunks are summed in order: the result is the same for
+    any number of workers."""
     H, W = cameras.height, cameras.width
     device = next(model.parameters()).device
     k = subpixel_grid(num_samples)
@@ -80,19 +127,27 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
     o, d = o.float(), d.float()
     hit = geometry.intersect(Rays(o, d))
     idx = hit.valid.nonzero().squeeze(-1)
+    chunks = idx.split(chunk)
+    base = int(torch.randint(0, 2**62, (1,), generator=generator, device=device))
+    seeds = [base + i for i in range(len(chunks))]
+
+    def render(i: int) -> _ChunkSums:
+        return _render_chunk(model, geometry, hit, d, pixel, chunks[i], per_ray, seeds[i], transport)
+
+    workers = torch.get_num_threads() if workers is None else workers
+    if device.type == "cpu" and workers > 1 and len(chunks) > 1:
+        with _one_intra_op_thread(), ThreadPoolExecutor(workers) as pool:
+            results = list(pool.map(render, range(len(chunks))))
+    else:
+        results = [render(i) for i in range(len(chunks))]
+
     sums = {name: torch.zeros(n_px, 3, device=device) for name in ("rgb", "specular", "diffuse", "albedo", "normal",
                                                                  "cache")}
     rough = torch.zeros(n_px, device=device)
-    for c in idx.split(chunk):
-        pts = SurfacePoints.from_hit(hit, c, -d[c])
-        material = decode_material(model, pts.position, pts.lookup_normal)
-        traced = path_trace(model, geometry, pts, material, per_ray, generator, transport)
-        px = pixel[c]
-        for name, value in (("rgb", traced.radiance.rgb), ("specular", traced.radiance.specular),
-                            ("diffuse", traced.radiance.diffuse), ("albedo", material.albedo),
-                            ("normal", pts.normal), ("cache", model.cache(pts.position, pts.normal, pts.wo))):
-            sums[name].index_add_(0, px, value)
-        rough.index_add_(0, px, material.roughness)
+    for r in results:
+        for name, value in sums.items():
+            value.index_add_(0, r.pixel, getattr(r, name))
+        rough.index_add_(0, r.pixel, r.roughness)
     hits = torch.zeros(n_px, device=device).index_add_(0, pixel, hit.valid.float())
     inv = 1.0 / hits.clamp_min(1.0)
     mean = {name: v * inv.unsqueeze(-1) for name, v in sums.items()}
