@@ -73,6 +73,8 @@ class HashGrid(nn.Module):
             offsets.append(offsets[-1] + s)
         self.register_buffer("resolution", torch.tensor(res, dtype=torch.float32), persistent=False)
         self.register_buffer("dense", torch.tensor(dense), persistent=False)
+        self.num_dense = sum(dense)          # resolution grows with the level, so the dense ones come first
+        assert all(dense[:self.num_dense]) and not any(dense[self.num_dense:])
         self.register_buffer("level_size", torch.tensor(sizes, dtype=torch.long), persistent=False)
         self.register_buffer("offset", torch.tensor(offsets, dtype=torch.long), persistent=False)
         self.table = nn.Parameter(torch.empty(sum(sizes), features_per_level).uniform_(-init_scale, init_scale))
@@ -81,23 +83,35 @@ class HashGrid(nn.Module):
     def out_dim(self) -> int:
         return self.num_levels * self.features_per_level
 
+    @staticmethod
+    def _axis_ends(lo: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Per axis the two cell ends of ``lo`` ``(N, L', 3)``, shaped to broadcast to ``(N, L', z, y, x)``."""
+        n, levels = lo.shape[:2]
+        ix, iy, iz = (torch.stack([lo[..., a], lo[..., a] + 1], -1) for a in range(3))   # (N, L', 2) each
+        return ix.view(n, levels, 1, 1, 2), iy.view(n, levels, 1, 2, 1), iz.view(n, levels, 2, 1, 1)
+
+    def _dense_corners(self, lo: Tensor, res: Tensor) -> Tensor:
+        """``(N, L', 8)`` row-major indices of the 8 corners in the dense levels' ``(r + 1)^3`` grids."""
+        ix, iy, iz = self._axis_ends(lo)
+        res1 = (res.long() + 1).view(1, -1, 1, 1, 1)
+        return (ix + res1 * (iy + res1 * iz)).flatten(2)
+
+    def _hashed_corners(self, lo: Tensor) -> Tensor:
+        """``(N, L', 8)`` spatial-hash indices (Mueller et al.) of the 8 corners in the hashed levels."""
+        ix, iy, iz = self._axis_ends(lo)
+        return ((ix * _PRIMES[0]) ^ (iy * _PRIMES[1]) ^ (iz * _PRIMES[2])).bitwise_and_(self.table_size - 1).flatten(2)
+
     def forward(self, x: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs E"]:
         bs = x.shape[:-1]
         x = x.reshape(-1, 3).clamp(0.0, 1.0)
-        n, levels = x.shape[0], self.num_levels
         res = self.resolution.view(1, -1, 1)
         pos = x.unsqueeze(1) * res                                               # (N, L, 3)
         p0 = torch.minimum(pos.floor(), res - 1)                                 # x = 1 stays in the last cell
         frac = pos - p0
         # the 8 corners are built separably: per axis the two cell ends, broadcast to (N, L, z, y, x)
         lo = p0.long()
-        ix, iy, iz = (torch.stack([lo[..., a], lo[..., a] + 1], -1) for a in range(3))   # (N, L, 2) each
-        shape_x, shape_y, shape_z = (n, levels, 1, 1, 2), (n, levels, 1, 2, 1), (n, levels, 2, 1, 1)
-        res1 = (self.resolution.long() + 1).view(1, -1, 1, 1, 1)
-        dense_idx = ix.view(shape_x) + res1 * (iy.view(shape_y) + res1 * iz.view(shape_z))
-        hashed = ((ix * _PRIMES[0]).view(shape_x) ^ (iy * _PRIMES[1]).view(shape_y)
-                  ^ (iz * _PRIMES[2]).view(shape_z)) & (self.table_size - 1)
-        idx = torch.where(self.dense.view(1, -1, 1, 1, 1), dense_idx, hashed).flatten(2)
+        nd = self.num_dense          # the coarse levels come first and are indexed densely, the rest hashed
+        idx = torch.cat([self._dense_corners(lo[:, :nd], self.resolution[:nd]), self._hashed_corners(lo[:, nd:])], 1)
         idx = idx + self.offset.view(1, -1, 1)                                   # (N, L, 8), corner (z, y, x)
         f = _Gather.apply(self.table, idx)                                       # (N, L, 8, F)
         # trilinear weights in the same corner order, as products of same-shape (N, L) tensors: no
