@@ -2,9 +2,9 @@
 
     python -m benchmarks.eval_speed [--run RUN] [--data DIR] [--views 16]
 
-Two evals of the same fitted run, each ``nefii eval RUN --data DATA --seed S`` (default spp) in a fresh
-process on a copy of the run whose saved thread count is set to 0 (all cores, what a default ``nefii fit``
-saves; eval uses the fit's), timed from process start to exit (what a user waits). The scene is the bowl at
+Two evals of the same fitted run, each ``nefii eval RUN --data DATA --seed S --threads 0`` (default spp,
+all cores: what a default ``nefii fit`` saves and eval then uses) in a fresh process on a copy of the run,
+timed from process start to exit (what a user waits). The scene is the bowl at
 128 x 128 with ``--views`` test views (synthesised once; Mitsuba needed the first time); the run is the
 quality benchmark's bowl fit if it exists, else one ``cpu``-preset fit made here. The Monte Carlo noise of
 the figures is stated twice: the difference of each metric between the two evals (seeds 0 and 1), and the
@@ -48,14 +48,9 @@ def timed_eval(run: Path, data: Path, seed: int, work: Path) -> tuple[float, Pat
     """Copy ``run``'s fitted state into ``work`` and time one ``nefii eval`` of it; returns (seconds, eval dir)."""
     copy = work / f"run_seed{seed}"
     shutil.copytree(run, copy, ignore=shutil.ignore_patterns("eval", "checkpoints", "previews", "tensorboard"))
-    # eval runs on the fit's thread count; benchmark fits ran two at a time on one thread each, a default
-    # ``nefii fit`` saves 0 (all cores): time what a user's run would get
-    config = json.loads((copy / "config.json").read_text())
-    config["threads"] = 0
-    (copy / "config.json").write_text(json.dumps(config, indent=2) + "\n")
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "nefii.cli.main", "eval", str(copy), "--data", str(data), "--seed",
-                    str(seed), "--quiet"], cwd=REPO, check=True)
+                    str(seed), "--threads", "0", "--quiet"], cwd=REPO, check=True)
     return time.perf_counter() - t0, copy / "eval"
 
 
@@ -93,9 +88,8 @@ def main(argv: list[str] | None = None) -> None:
     worst = max(times)
     lines = [f"# eval_speed ({stamp()}, code {code_version()})", "", f"Machine: {machine()}.",
              f"Made by `python -m benchmarks.eval_speed` on `{data.name}` ({views} test views) with the fitted run "
-             f"`{run.name}`: two `nefii eval` runs at the default settings (seeds 0 and 1, all cores: the run's "
-             "saved thread count set to 0 as a default `nefii fit` saves it), each a fresh process timed from "
-             "start to exit.", "",
+             f"`{run.name}`: two `nefii eval` runs at the default settings (seeds 0 and 1, `--threads 0`: all cores, "
+             "as a default `nefii fit` saves it), each a fresh process timed from start to exit.", "",
              "| eval | wall s | s per view | target |", "|---|---|---|---|"]
     for seed, s in enumerate(times):
         lines.append(f"| seed {seed} | {s:.1f} | {s / views:.2f} | <= {TARGET_S:.0f} s: "
