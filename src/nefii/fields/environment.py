@@ -8,10 +8,10 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from ..render.envmap import Environment, envmap_lookup
-from ..render.equirect import pixel_directions
+from ..render.equirect import pixel_directions, pixel_solid_angles
 from ..render.frame import normalize
 from ..render.lights import LightSampler, SGLightSampler
-from ..render.sg import SGMixture, fibonacci_sphere, sg_eval, sg_to_equirect
+from ..render.sg import SGMixture, fibonacci_sphere, sg_energy, sg_eval, sg_to_equirect
 
 
 class SGEnvironment(nn.Module):
@@ -50,6 +50,11 @@ class SGEnvironment(nn.Module):
     def radiance(self, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
         return sg_eval(w, self())
 
+    def energy_atoms(self) -> tuple[Float[Tensor, "K 3"], Float[Tensor, " K"]]:
+        """Each lobe's axis and energy (Eq. 6's ``mu_bar``: what it sends over the whole sphere)."""
+        sg = self()
+        return sg.axis, sg_energy(sg)
+
     def light_sampler(self) -> LightSampler:
         """Eq. 5-6 sampling of the current lobes (no gradient flows through sampling)."""
         sg = self()
@@ -76,6 +81,13 @@ class EnvmapEnvironment(nn.Module):
 
     def radiance(self, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
         return envmap_lookup(self.image(), w)
+
+    def energy_atoms(self) -> tuple[Float[Tensor, "HW 3"], Float[Tensor, " HW"]]:
+        """Each pixel's direction and energy (mean RGB radiance times its solid angle)."""
+        img = self.image()
+        h, w = img.shape[:2]
+        d = pixel_directions(h, w, device=img.device, dtype=img.dtype)
+        return d.reshape(-1, 3), (img.mean(-1) * pixel_solid_angles(h, w, device=img.device, dtype=img.dtype)).reshape(-1)
 
     def light_sampler(self) -> LightSampler:
         return Environment.from_image(self.image().detach())

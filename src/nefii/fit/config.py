@@ -116,6 +116,9 @@ class FitConfig:
     keeps the hash grid from memorising Monte Carlo noise"""
     smooth_radius: Annotated[float, Range(0, 1)] = 0.01
     """jitter of the smoothness prior, as a fraction of the scene's bounding-box diagonal"""
+    light_prior: Annotated[float, Range(0)] = 2e-4
+    """weight of a prior that darkens the light where the object barely sees it (0: off, as the paper;
+    :mod:`nefii.fit.light_prior`)"""
     secondary_buffer: Annotated[int, Range(1)] = 65536
     """secondary hits kept for the unobserved step"""
     ray_offset: Annotated[float, Range(0, 0.1)] = 1e-4
@@ -200,7 +203,7 @@ PRESETS: dict[str, dict[str, Any]] = {
             "lookup_smoothing_reconstructed": 0.04},
     "paper": {
         "steps": 60000, "batch_pixels": 2048, "num_samples": 64, "lr": 5e-4, "lr_light": 5e-3,
-        "tonemap": "none", "loss": "l1", "smooth_albedo": 0.0, "roughness_warmup": 50 / 120,
+        "tonemap": "none", "loss": "l1", "smooth_albedo": 0.0, "light_prior": 0.0, "roughness_warmup": 50 / 120,
         "material": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 8},
         "cache": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 4},
         "light": {"sharpness_max": 3000.0}, "brdf": {"diffuse": "lambert", "shadowing": "schlick"},
@@ -229,9 +232,9 @@ def config_from_dict(values: dict[str, Any]) -> FitConfig:
 def saved_config_from_dict(values: dict[str, Any]) -> FitConfig:
     """A config a run saved: a setting missing from it reads back as the behaviour the run was fitted with,
     not today's default (the official BRDF before ``brdf`` existed; Eq. 8 training all of the material before
-    ``unobserved_material`` existed)."""
+    ``unobserved_material`` existed; no light prior before ``light_prior`` existed)."""
     return config_from_dict({"brdf": {"diffuse": "lambert", "shadowing": "schlick"},
-                             "unobserved_material": "all", **values})
+                             "unobserved_material": "all", "light_prior": 0.0, **values})
 
 
 def config_to_dict(cfg: FitConfig) -> dict[str, Any]:

@@ -78,6 +78,8 @@ class LossTerms:
     """L2 of the environment seen by background pixels (Eq. 7, third term)"""
     smooth: Tensor | None = None
     """albedo smoothness prior (not in the paper; None when off)"""
+    light: Tensor | None = None
+    """the prior on the light where the object barely sees it (:mod:`nefii.fit.light_prior`; None when off)"""
 
 
 @dataclass(frozen=True)
@@ -109,8 +111,9 @@ def smoothness(albedo: Float[Tensor, "B 3"], neighbour_albedo: Float[Tensor, "B 
 
 def observed_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], target: Float[Tensor, "B 3"],
                   env_bg: Float[Tensor, "G 3"], target_bg: Float[Tensor, "G 3"], tone: str, kind: str,
-                  beta1: float = 1.0, beta2: float = 1.0, smooth: Tensor | None = None) -> LossTerms:
-    """Eq. 7: ``d(c_pt, c) + beta1 d(L(x,n,wo), c) + beta2 |E(d_bg) - c_bg|_2^2`` (+ the prior's value).
+                  beta1: float = 1.0, beta2: float = 1.0, smooth: Tensor | None = None,
+                  light: Tensor | None = None) -> LossTerms:
+    """Eq. 7: ``d(c_pt, c) + beta1 d(L(x,n,wo), c) + beta2 |E(d_bg) - c_bg|_2^2`` (+ the priors' values).
 
     ``cache_rgb`` is the cache's own colour at the pixels' points, ``env_bg`` the environment along the
     background pixels' directions (``G`` may be 0)."""
@@ -121,9 +124,10 @@ def observed_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], target: F
     else:
         l_bg = l_render.new_zeros(())
     total = l_render + beta1 * l_cache + beta2 * l_bg
-    if smooth is not None:
-        total = total + smooth
-    return LossTerms(total, l_render, l_cache, l_bg, smooth)
+    for prior in (smooth, light):
+        if prior is not None:
+            total = total + prior
+    return LossTerms(total, l_render, l_cache, l_bg, smooth, light)
 
 
 def unobserved_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], tone: str, kind: str) -> LossTerms:

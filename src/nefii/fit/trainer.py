@@ -19,6 +19,7 @@ from ..io.checkpoints import save_checkpoint
 from ..render.brdf import Material
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
+from .light_prior import light_coverage, unseen_light_prior
 from .losses import LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, smoothness, unobserved_loss
 from .model import NeFIIModel, decode_material
 from .path_trace import SurfacePoints, Transport, path_trace
@@ -62,6 +63,8 @@ class Trainer:
         self.alternation = Alternation(cfg.unobserved_every, cfg.unobserved)
         self.transport = transport_of(cfg)
         self.prior = SmoothnessPrior(cfg.smooth_albedo, cfg.smooth_radius * geometry.scale)
+        self.coverage = (light_coverage(pixels.points, geometry, cfg.ray_offset * geometry.scale, cfg.seed)
+                         if cfg.light_prior > 0 else None)
         self.step = 0
 
     # ---- one step
@@ -101,9 +104,12 @@ class Trainer:
                 near = self.prior.neighbours(pts.position, pts.normal, self.generator)
                 smooth = smoothness(material.albedo, decode_material(model, near, pts.lookup_normal, rough).albedo,
                                     self.prior.weight)
+            light = None
+            if self.coverage is not None:
+                light = unseen_light_prior(*model.env.energy_atoms(), self.coverage, cfg.light_prior)
             terms = observed_loss(traced, model.cache(pts.position, pts.normal, pts.wo), batch.rgb,
                                   model.env.radiance(batch.bg_dirs), batch.bg_rgb, cfg.tonemap, cfg.loss,
-                                  cfg.beta1, cfg.beta2, smooth)
+                                  cfg.beta1, cfg.beta2, smooth, light)
             self.buffer.add(traced.secondary)
             kind = "observed"
         if any_rank(not bool(torch.isfinite(terms.total)), self.dist, self.device):
