@@ -86,6 +86,16 @@ def setup_angle_zero(scene: Path, tmp: Path) -> Path:
     return root
 
 
+def setup_equirectangular_capture(scene: Path, tmp: Path) -> Path:
+    """A nerfstudio capture from a 360 camera, which nefii does not read."""
+    root = tmp / "capture"
+    root.mkdir()
+    (root / "transforms.json").write_text(json.dumps({
+        "camera_model": "EQUIRECTANGULAR", "fl_x": 8.0, "fl_y": 8.0, "w": 16, "h": 8,
+        "frames": [{"file_path": "images/frame_00001.jpg", "transform_matrix": np.eye(4).tolist()}]}))
+    return root
+
+
 def setup_face_out_of_range(scene: Path, tmp: Path) -> Path:
     root = _scene_copy(scene, tmp)
     mesh = trimesh.load(root / "mesh.ply", force="mesh", process=False)
@@ -180,6 +190,8 @@ CASES = [
          ("no run to resume",)),
     Case("camera_angle_x=0", "fit {bad} --out {tmp}/out --preset tiny --quiet", 2,
          ("transforms_train.json", "camera_angle_x", "between 0"), setup_angle_zero),
+    Case("nerfstudio camera_model", "fit {bad} --out {tmp}/out --preset tiny --quiet", 2,
+         ("transforms.json", "'EQUIRECTANGULAR' is not supported"), setup_equirectangular_capture),
     Case("face index out of range", "fit {bad} --out {tmp}/out --preset tiny --quiet", 2,
          ("mesh.ply", "face 3 refers to vertex"), setup_face_out_of_range),
     # ---- geometry settings

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..errors import InputError
-from . import colmap, nerf, neus, physg, synthetic4relight
+from . import colmap, nerf, nerfstudio, neus, physg, synthetic4relight
 from .scene import SceneData
 
 SPLITS = ("train", "test")
@@ -34,6 +34,8 @@ FORMATS: dict[str, Format] = {f.name: f for f in (
     Format(synthetic4relight.NAME, synthetic4relight.DESCRIPTION, synthetic4relight.detect,
            synthetic4relight.read, True),
     Format(nerf.NAME, nerf.DESCRIPTION, nerf.detect, nerf.read, True),
+    # nerfstudio after nerf: a folder with transforms_{split}.json is read by it even beside a transforms.json
+    Format(nerfstudio.NAME, nerfstudio.DESCRIPTION, nerfstudio.detect, nerfstudio.read, True),
     Format(neus.NAME, neus.DESCRIPTION, neus.detect, neus.read, False),
     Format(physg.NAME, physg.DESCRIPTION, physg.detect, physg.read, False),
     Format(colmap.NAME, colmap.DESCRIPTION, colmap.detect, colmap.read, False),

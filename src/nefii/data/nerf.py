@@ -53,7 +53,7 @@ def frames_of(meta: dict[str, Any], path: Path) -> list[dict[str, Any]]:
     return frames
 
 
-def _number(value: Any, path: Path, where: str, key: str) -> float:
+def number(value: Any, path: Path, where: str, key: str) -> float:
     try:
         x = float(value)
     except (TypeError, ValueError):
@@ -68,7 +68,7 @@ def intrinsics(meta: dict[str, Any], frame: dict[str, Any], width: int, height: 
     """``K`` from a frame's keys, falling back to the top level's (nerfstudio's per-frame override)."""
     def get(key: str) -> float | None:
         v = frame.get(key, meta.get(key))
-        return None if v is None else _number(v, path, where, key)
+        return None if v is None else number(v, path, where, key)
 
     def angle(key: str) -> float | None:
         a = get(key)
