@@ -49,16 +49,14 @@ class LightCoverage:
 def direction_coverage(points: SurfacePoints, geometry: Geometry, directions: Float[Tensor, "M 3"],
                        ray_offset: float, chunk: int = 64) -> Float[Tensor, " M"]:
     """``c(d)``: mean over ``points`` of ``V(x, d) max(n . d, 0)``, visibility traced against ``geometry``
-    (``ray_offset`` in world units)."""
-    P = len(points.position)
+    (``ray_offset`` in world units) for the pairs above the surface only: the others add 0 either way."""
     cov = []
     for d in directions.split(chunk):
         cos = (points.normal @ d.T).clamp_min(0.0)                                 # (P, D)
-        D = d.shape[0]
-        rays = spawn_rays(points.position.unsqueeze(1).expand(P, D, 3).reshape(-1, 3),
-                          points.geometric_normal.unsqueeze(1).expand(P, D, 3).reshape(-1, 3),
-                          d.unsqueeze(0).expand(P, D, 3).reshape(-1, 3), ray_offset)
-        visible = (~geometry.occluded(rays)).reshape(P, D).to(cos.dtype)
+        p_idx, d_idx = (cos > 0).nonzero(as_tuple=True)
+        rays = spawn_rays(points.position[p_idx], points.geometric_normal[p_idx], d[d_idx], ray_offset)
+        visible = torch.zeros_like(cos)
+        visible[p_idx, d_idx] = (~geometry.occluded(rays)).to(cos.dtype)
         cov.append((visible * cos).mean(0))
     return torch.cat(cov)
 
