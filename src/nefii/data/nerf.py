@@ -63,12 +63,18 @@ def number(value: Any, path: Path, where: str, key: str) -> float:
     return x
 
 
+def frame_number(meta: dict[str, Any], frame: dict[str, Any], key: str, path: Path, where: str) -> float | None:
+    """The frame's number ``key``, else the top level's (nerfstudio's per-frame override); ``None`` if neither
+    has it."""
+    v = frame.get(key, meta.get(key))
+    return None if v is None else number(v, path, where, key)
+
+
 def intrinsics(meta: dict[str, Any], frame: dict[str, Any], width: int, height: int,
                path: Path, where: str) -> np.ndarray:
     """``K`` from a frame's keys, falling back to the top level's (nerfstudio's per-frame override)."""
     def get(key: str) -> float | None:
-        v = frame.get(key, meta.get(key))
-        return None if v is None else number(v, path, where, key)
+        return frame_number(meta, frame, key, path, where)
 
     def angle(key: str) -> float | None:
         a = get(key)

@@ -31,14 +31,11 @@ import posixpath
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ..errors import InputError
 from .files import IMAGE_SUFFIXES, read_json
-from .nerf import frames_of, gl_pose, number
+from .nerf import frame_number, frames_of, gl_pose, intrinsics
 from .scene import SceneData
-from .undistort import COEFFS, Lens, undistort_cached
-from .validate import check_K
+from .undistort import COEFFS, Lens, check_lens_size, undistort_cached
 from .assemble import View, make_scene, read_views
 
 NAME = "nerfstudio"
@@ -57,8 +54,7 @@ def detect(root: Path, split: str) -> bool:
 def lens_of(meta: dict[str, Any], frame: dict[str, Any], path: Path, where: str) -> Lens:
     """A frame's camera: its own keys, falling back to the top level's."""
     def get(key: str) -> float | None:
-        v = frame.get(key, meta.get(key))
-        return None if v is None else number(v, path, where, key)
+        return frame_number(meta, frame, key, path, where)
 
     model = frame.get("camera_model", meta.get("camera_model", DEFAULT_MODEL))
     if model not in COEFFS:
@@ -78,12 +74,8 @@ def lens_of(meta: dict[str, Any], frame: dict[str, Any], path: Path, where: str)
         if k not in COEFFS[model] and v != 0.0:
             raise InputError(path, f"{where}: '{k}' is {v:g} but {model} cameras have no '{k}' "
                                    f"(only {', '.join(COEFFS[model]) or 'no distortion'})")
-    cx, cy = get("cx"), get("cy")
-    K = np.array([[need["fl_x"], 0.0, 0.5 * w if cx is None else cx],
-                  [0.0, need["fl_y"], 0.5 * h if cy is None else cy],
-                  [0.0, 0.0, 1.0]])
-    return Lens(model=model, K=check_K(K, path, where), coeffs=tuple(distortion[k] for k in COEFFS[model]),
-                width=int(w), height=int(h))
+    K = intrinsics(meta, frame, int(w), int(h), path, where)      # fl_x and fl_y are there: no field of view
+    return Lens(model=model, K=K, coeffs=tuple(distortion[k] for k in COEFFS[model]), width=int(w), height=int(h))
 
 
 def _view(root: Path, frame: dict[str, Any], path: Path, where: str) -> View:
@@ -162,11 +154,8 @@ def read(root: Path, split: str) -> SceneData:
             sources[i], Ks[i] = view, K
 
     images, masks, transparent = read_views([sources[i] for i in chosen])
-    h, w = images.shape[1:3]
     for i in chosen:
-        if (lenses[i].width, lenses[i].height) != (w, h):
-            raise InputError(views[i].image, f"image is {w}x{h} but {path.name} gives "
-                                             f"w={lenses[i].width}, h={lenses[i].height}")
+        check_lens_size(images.shape[1:3], views[i].image, lenses[i], "image", path)
     return make_scene(transparent_background=transparent, root=root, split=split, fmt=NAME,
                       views=[views[i] for i in chosen], images=images, masks=masks,
                       K=[Ks[i] for i in chosen], c2w=[poses[i] for i in chosen])

@@ -72,6 +72,10 @@ class Lens:
         """Whether images need resampling to be pinhole images."""
         return self.model == "OPENCV_FISHEYE" or any(c != 0.0 for c in self.coeffs)
 
+    def opencv(self) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+        """``K`` in OpenCV's pixel convention, the coefficients, and the ``(width, height)`` OpenCV takes."""
+        return np.linalg.inv(PIXEL_CENTRE) @ self.K, np.array(self.coeffs), (self.width, self.height)
+
     def describe(self) -> str:
         """``OPENCV, k1=-0.10`` (non-zero coefficients only)."""
         values = [f"{n}={c:.3g}" for n, c in zip(COEFFS[self.model], self.coeffs) if c != 0.0]
@@ -82,7 +86,7 @@ def undistorted_K(lens: Lens) -> np.ndarray:
     """The pinhole ``K`` (nefii's convention) OpenCV picks for the undistorted image, every pixel valid."""
     import cv2
 
-    K_cv, D, size = np.linalg.inv(PIXEL_CENTRE) @ lens.K, np.array(lens.coeffs), (lens.width, lens.height)
+    K_cv, D, size = lens.opencv()
     if lens.model == "OPENCV_FISHEYE":
         K_new = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(K_cv, D, size, np.eye(3), balance=0.0)
     else:
@@ -94,7 +98,7 @@ def rectify_maps(lens: Lens, K_new: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     """Per output pixel, where to sample the photograph (OpenCV's float maps, x and y)."""
     import cv2
 
-    K_cv, D, size = np.linalg.inv(PIXEL_CENTRE) @ lens.K, np.array(lens.coeffs), (lens.width, lens.height)
+    K_cv, D, size = lens.opencv()
     K_new_cv = np.linalg.inv(PIXEL_CENTRE) @ K_new
     if lens.model == "OPENCV_FISHEYE":
         return cv2.fisheye.initUndistortRectifyMap(K_cv, D, np.eye(3), K_new_cv, size, cv2.CV_32FC1)
@@ -137,8 +141,10 @@ def _out_name(i: int, source: Path) -> str:
     return f"{i:05d}_{source.stem}{'.exr' if source.suffix.lower() == '.exr' else '.png'}"
 
 
-def _check_size(image: np.ndarray, path: Path, lens: Lens, what: str, json_path: Path) -> None:
-    h, w = image.shape[:2]
+def check_lens_size(shape: tuple[int, ...], path: Path, lens: Lens, what: str, json_path: Path) -> None:
+    """``shape[:2]`` (H, W) of the ``what`` (image or mask) in ``path`` must be the lens's size that
+    ``json_path`` gives."""
+    h, w = shape[:2]
     if (w, h) != (lens.width, lens.height):
         raise InputError(path, f"{what} is {w}x{h} but {json_path.name} gives w={lens.width}, h={lens.height}")
 
@@ -194,13 +200,13 @@ def undistort_cached(root: Path, json_path: Path, items: Sequence[tuple[View, Le
                     maps[lens_key] = (K_new, rectify_maps(lens, K_new))
                 K_new, lens_maps = maps[lens_key]
                 image = _read(view.image)
-                _check_size(image, view.image, lens, "image", json_path)
+                check_lens_size(image.shape, view.image, lens, "image", json_path)
                 name = f"images/{_out_name(i, view.image)}"
                 _write(tmp / name, remap(image, lens_maps))
                 mask_name = None
                 if view.mask is not None:
                     mask = _read(view.mask)
-                    _check_size(mask, view.mask, lens, "mask", json_path)
+                    check_lens_size(mask.shape, view.mask, lens, "mask", json_path)
                     mask_name = f"masks/{_out_name(i, view.mask)}"
                     _write(tmp / mask_name, remap(mask, lens_maps, nearest=True))
                 records.append({"source": relative_name(view.image, root), "image": name,
