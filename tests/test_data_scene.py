@@ -76,7 +76,9 @@ def test_rgba_exr_is_unpremultiplied(tmp_path):
     rgb = np.array([[[0.2, 0.4, 8.0], [1.0, 1.0, 1.0]]], np.float32)
     alpha = np.array([[0.25, 0.0]], np.float32)
     write_exr(tmp_path / "a.exr", np.concatenate([rgb * alpha[..., None], alpha[..., None]], -1))
-    out, a = read_image(tmp_path / "a.exr")
+    img = read_image(tmp_path / "a.exr")
+    out, a = img.rgb, img.alpha
+    assert img.clipped is None  # float data cannot clip
     np.testing.assert_allclose(out[0, 0], rgb[0, 0], rtol=1e-6)
     np.testing.assert_array_equal(out[0, 1], 0.0)  # alpha 0: left as stored
     np.testing.assert_array_equal(a, alpha)
@@ -84,9 +86,29 @@ def test_rgba_exr_is_unpremultiplied(tmp_path):
 
 def test_png_is_srgb_decoded_and_grey_repeated(tmp_path):
     Image.fromarray(np.array([[0, 128, 255]], np.uint8)).save(tmp_path / "g.png")
-    out, a = read_image(tmp_path / "g.png")
+    img = read_image(tmp_path / "g.png")
+    out, a = img.rgb, img.alpha
     assert out.shape == (1, 3, 3) and a is None
     np.testing.assert_allclose(out[0, :, 0], srgb_to_linear(np.array([0, 128, 255]) / 255.0))
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_8bit_pixels_at_the_top_code_are_clipped(tmp_path, suffix):
+    """Any channel at 254 or 255 is clipped; 253 and below is not (JPEG stored losslessly enough here:
+    flat 8x8 blocks of one value)."""
+    vals = [(0, 0, 0), (253, 253, 253), (254, 10, 10), (10, 255, 10), (100, 100, 100)]
+    arr = np.concatenate([np.full((8, 8, 3), v, np.uint8) for v in vals], axis=1)
+    Image.fromarray(arr).save(tmp_path / f"c{suffix}", quality=100)
+    clipped = read_image(tmp_path / f"c{suffix}").clipped
+    got = [bool(clipped[2:6, 8 * i + 2:8 * i + 6].all()) for i in range(len(vals))]
+    none = [not bool(clipped[2:6, 8 * i + 2:8 * i + 6].any()) for i in range(len(vals))]
+    assert got == [False, False, True, True, False] and none == [True, True, False, False, True]
+
+
+def test_16bit_png_clips_only_at_its_own_top(tmp_path):
+    Image.fromarray(np.array([[65535, 65280, 0]], np.uint16)).save(tmp_path / "d.png")
+    clipped = read_image(tmp_path / "d.png").clipped
+    assert clipped.tolist() == [[True, False, False]]  # 65280 = 255 * 256 is not the top of 16 bits
 
 
 def test_unsupported_image_suffix(tmp_path):

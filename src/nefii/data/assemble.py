@@ -27,9 +27,22 @@ class View:
     """its mask file; ``None``: the image's alpha, if every view has one, gives the mask"""
 
 
-def read_views(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None, bool]:
-    """Images ``(N, H, W, 3)`` linear float32, masks ``(N, H, W)`` bool or ``None``, and whether the
-    background is transparent.
+@dataclass(frozen=True)
+class ViewStack:
+    """The views' pixels, read and checked."""
+
+    images: np.ndarray
+    """``(N, H, W, 3)`` linear float32"""
+    masks: np.ndarray | None
+    """``(N, H, W)`` bool, or ``None`` without masks"""
+    transparent: bool
+    """the background is transparent (masks from alpha): its pixels show nothing"""
+    clipped: np.ndarray | None
+    """``(N, H, W)`` bool: pixels saturated in some channel (8/16-bit files); ``None`` when no file can clip"""
+
+
+def read_views(views: Sequence[View]) -> ViewStack:
+    """Read every view's image and mask.
 
     Masks come from the mask files when views name them (then every view must), else from
     alpha > 0.5 when every image has an alpha channel and some alpha is below 1 (then the
@@ -38,13 +51,14 @@ def read_views(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None, bo
     """
     if not views:
         raise InputError(None, "no views to read")
-    rgbs, alphas = [], []
+    rgbs, alphas, clips = [], [], []
     for v in views:
-        rgb, alpha = read_image(v.image)
+        img = read_image(v.image)
         if rgbs:
-            check_size(rgb.shape, v.image, rgbs[0].shape[:2], views[0].image)
-        rgbs.append(rgb)
-        alphas.append(alpha)
+            check_size(img.rgb.shape, v.image, rgbs[0].shape[:2], views[0].image)
+        rgbs.append(img.rgb)
+        alphas.append(img.alpha)
+        clips.append(np.zeros(img.rgb.shape[:2], bool) if img.clipped is None else img.clipped)
     size = rgbs[0].shape[:2]
     _warn_suspicious(views, rgbs, alphas)
     masks: list[np.ndarray] | None = None
@@ -65,7 +79,8 @@ def read_views(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None, bo
             m = a > 0.5
             check_mask(m, v.image)
             masks.append(m)
-    return np.stack(rgbs), (None if masks is None else np.stack(masks)), transparent
+    clipped = np.stack(clips) if any(c.any() for c in clips) else None
+    return ViewStack(np.stack(rgbs), None if masks is None else np.stack(masks), transparent, clipped)
 
 
 def _warn_suspicious(views: Sequence[View], rgbs: list[np.ndarray], alphas: list[np.ndarray | None]) -> None:
@@ -100,13 +115,13 @@ def relative_name(path: Path, root: Path) -> str:
     return Path(os.path.relpath(path, root)).as_posix()
 
 
-def make_scene(*, root: Path, split: str, fmt: str, views: Sequence[View], images: np.ndarray,
-               masks: np.ndarray | None, K: Sequence[np.ndarray], c2w: Sequence[np.ndarray],
-               transparent_background: bool = False,
+def make_scene(*, root: Path, split: str, fmt: str, views: Sequence[View], stack: ViewStack,
+               K: Sequence[np.ndarray], c2w: Sequence[np.ndarray],
                indices: Sequence[int] | None = None, scene_to_source: np.ndarray | None = None,
                ground_truth: GroundTruth | None = None, mesh_path: Path | None = None,
                envmap: np.ndarray | None = None, relit: Sequence[Relit] = ()) -> SceneData:
     """Assemble validated numpy pieces into :class:`SceneData` (torch, CPU)."""
+    images, masks = stack.images, stack.masks
     names = tuple(relative_name(v.image, root) for v in views)
     if indices is None:
         indices = frame_indices([v.image.name.split(".")[0] for v in views])
@@ -122,5 +137,6 @@ def make_scene(*, root: Path, split: str, fmt: str, views: Sequence[View], image
                                          else np.asarray(scene_to_source, np.float64)),
         ground_truth=ground_truth, mesh_path=mesh_path,
         envmap=None if envmap is None else torch.from_numpy(np.ascontiguousarray(envmap, dtype=np.float32)),
-        relit=tuple(relit), background_visible=not transparent_background,
+        relit=tuple(relit), background_visible=not stack.transparent,
+        clipped=None if stack.clipped is None else torch.from_numpy(stack.clipped),
     )

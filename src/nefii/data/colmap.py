@@ -126,11 +126,11 @@ def read(root: Path, split: str, *, allow_distortion: bool = False) -> SceneData
                 raise InputError(root / "masks" / f"{im.name}.png",
                                  "mask file not found (masks/ holds masks for other views)")
         views.append(View(image=image, mask=mask))
-    images, masks, transparent = read_views(views)
-    h, w = images.shape[1:3]
+    stack = read_views(views)
+    h, w = stack.images.shape[1:3]
     for v, im in zip(views, registered):
         cam = rec.cameras[im.camera_id]
         if (cam.width, cam.height) != (w, h):
             raise InputError(v.image, f"image is {w}x{h} but COLMAP camera {cam.camera_id} is {cam.width}x{cam.height}")
-    return make_scene(transparent_background=transparent, root=root, split=split, fmt=NAME, views=views, images=images, masks=masks, K=Ks, c2w=poses,
+    return make_scene(root=root, split=split, fmt=NAME, views=views, stack=stack, K=Ks, c2w=poses,
                       indices=range(len(views)))

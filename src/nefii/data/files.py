@@ -3,12 +3,15 @@
 Images come back as numpy: colour ``(H, W, 3)`` linear float32 straight (not premultiplied)
 colour, alpha ``(H, W)`` float32 or ``None``. PNG/JPG colour is sRGB-decoded, alpha and
 masks are not. EXR is linear; RGBA EXR is premultiplied (as OpenEXR defines it) and is
-un-premultiplied where alpha > 0.
+un-premultiplied where alpha > 0. PNG/JPG pixels at the top code value in any channel are
+reported as clipped: a camera's sensor or encoder saturated there, so the scene was at least
+that bright and its true value is unknown.
 """
 from __future__ import annotations
 
 import json
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,8 +25,26 @@ IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg")
 """image files nefii reads, in the order a suffix-less name is resolved"""
 
 
-def _read_ldr(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """PNG/JPG through Pillow -> (values in [0, 1] with 1 or 3 channels, alpha or None); no sRGB decoding."""
+CLIP_CODES = 1
+"""code values below the top counted as clipped (8-bit: >= 254/255; 16-bit: >= 65534/65535): JPEG's
+rounding leaves saturated pixels a code or so below the top"""
+
+
+@dataclass(frozen=True)
+class Image:
+    """One image file as nefii uses it."""
+
+    rgb: np.ndarray
+    """``(H, W, 3)`` linear float32 straight colour"""
+    alpha: np.ndarray | None
+    """``(H, W)`` float32, or ``None`` without an alpha channel"""
+    clipped: np.ndarray | None
+    """``(H, W)`` bool: some channel at the top of an integer format's range (PNG/JPG); ``None`` for EXR"""
+
+
+def _read_ldr(path: Path) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """PNG/JPG through Pillow -> (values in [0, 1] with 1 or 3 channels, alpha or None, the format's top
+    code value: 255 or 65535); no sRGB decoding."""
     from PIL import Image, UnidentifiedImageError
 
     if not path.is_file():
@@ -33,17 +54,17 @@ def _read_ldr(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
             im.load()
             mode = im.mode
             if mode in ("I;16", "I;16B", "I;16L", "I"):  # 16-bit greyscale
-                return np.asarray(im, dtype=np.float32)[..., None] / 65535.0, None
+                return np.asarray(im, dtype=np.float32)[..., None] / 65535.0, None, 65535
             has_alpha = mode in ("RGBA", "LA", "PA") or "transparency" in im.info
             im = im.convert("RGBA" if has_alpha else "RGB")
             arr = np.asarray(im, dtype=np.float32) / 255.0
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
         raise InputError(path, f"not a readable image ({type(e).__name__}: {e})") from None
-    return (arr[..., :3], arr[..., 3]) if has_alpha else (arr, None)
+    return (arr[..., :3], arr[..., 3], 255) if has_alpha else (arr, None, 255)
 
 
-def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """An image file -> ``(rgb, alpha)``: linear float32 straight colour ``(H, W, 3)``, alpha or ``None``.
+def read_image(path: str | Path) -> Image:
+    """An image file -> :class:`Image` (linear straight colour, alpha, clipped pixels).
 
     Single-channel images are repeated to three channels. Raises :class:`InputError` for a
     missing or unreadable file, an unknown suffix, or NaN/inf values.
@@ -61,12 +82,13 @@ def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
             raise InputError(path, f"{bad} pixel(s) with NaN or infinite values")
         if alpha is not None:  # premultiplied -> straight colour
             rgb = np.where(alpha[..., None] > 0, rgb / np.where(alpha > 0, alpha, 1.0)[..., None], rgb)
-        return np.ascontiguousarray(rgb, dtype=np.float32), alpha
+        return Image(np.ascontiguousarray(rgb, dtype=np.float32), alpha, None)
     if suffix in (".png", ".jpg", ".jpeg"):
-        values, alpha = _read_ldr(path)
+        values, alpha, top = _read_ldr(path)
         if values.shape[-1] == 1:
             values = np.repeat(values, 3, -1)
-        return srgb_to_linear(values), alpha
+        clipped = (values >= (top - CLIP_CODES - 0.5) / top).any(-1)
+        return Image(srgb_to_linear(values), alpha, clipped)
     raise InputError(path, f"unsupported image type '{path.suffix}' (nefii reads {', '.join(IMAGE_SUFFIXES)})")
 
 
@@ -84,7 +106,7 @@ def read_data_map(path: str | Path, channels: int, *, srgb: bool = False) -> np.
             a = img[..., 3:]
             img = np.where(a > 0, img[..., :3] / np.where(a > 0, a, 1.0), img[..., :3])
     else:
-        img, _ = _read_ldr(path)
+        img, _, _ = _read_ldr(path)
         if srgb:
             img = srgb_to_linear(img)
     if img.ndim == 2:
@@ -108,7 +130,7 @@ def read_mask(path: str | Path) -> np.ndarray:
         alpha = img[..., 3] if img.shape[-1] == 4 else None
         values = img[..., :3]
     else:
-        values, alpha = _read_ldr(path)
+        values, alpha, _ = _read_ldr(path)
     if alpha is not None and (alpha < 1.0).any():
         return alpha > 0.5
     return values.mean(-1) > 0.5

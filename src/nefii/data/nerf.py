@@ -140,7 +140,7 @@ def _relit(root: Path, stems: list[Path], size: tuple[int, int], prefer: tuple[s
         imgs = []
         for s in stems:
             f = resolve_image(env_dir / s.name, prefer)
-            rgb, _ = read_image(f)
+            rgb = read_image(f).rgb
             check_size(rgb.shape, f, size, "the views")
             imgs.append(rgb)
         env_file = next((p for p in (folder / f"{env_dir.name}.exr", env_dir / "envmap.exr") if p.is_file()), None)
@@ -161,8 +161,8 @@ def read(root: Path, split: str, *, prefer: tuple[str, ...] = IMAGE_SUFFIXES) ->
         image = resolve_image(root / f["file_path"], prefer)
         mask = _stem(image).with_name(_stem(image).name + "_mask.png")
         views.append(View(image=image, mask=mask if mask.is_file() else None))
-    images, masks, transparent = read_views(views)
-    h, w = images.shape[1:3]
+    stack = read_views(views)
+    h, w = stack.images.shape[1:3]
     if "w" in meta or "h" in meta:
         jw, jh = meta.get("w", w), meta.get("h", h)
         if (jw, jh) != (w, h):
@@ -173,9 +173,8 @@ def read(root: Path, split: str, *, prefer: tuple[str, ...] = IMAGE_SUFFIXES) ->
     envmap_file = root / "envmap.exr"
     mesh = root / "mesh.ply"
     return make_scene(
-        transparent_background=transparent,
-        root=root, split=split, fmt=NAME, views=views, images=images, masks=masks, K=Ks, c2w=poses,
-        ground_truth=_ground_truth(stems, (h, w), masks, mask_files),
+        root=root, split=split, fmt=NAME, views=views, stack=stack, K=Ks, c2w=poses,
+        ground_truth=_ground_truth(stems, (h, w), stack.masks, mask_files),
         mesh_path=mesh if mesh.is_file() else None,
         envmap=read_data_map(envmap_file, 3) if envmap_file.is_file() else None,
         relit=_relit(root, stems, (h, w), prefer) if split == "test" else (),

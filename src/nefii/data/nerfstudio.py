@@ -153,9 +153,9 @@ def read(root: Path, split: str) -> SceneData:
         for i, (view, K) in zip(distorted, done):
             sources[i], Ks[i] = view, K
 
-    images, masks, transparent = read_views([sources[i] for i in chosen])
+    stack = read_views([sources[i] for i in chosen])
     for i in chosen:
-        check_lens_size(images.shape[1:3], views[i].image, lenses[i], "image", path)
-    return make_scene(transparent_background=transparent, root=root, split=split, fmt=NAME,
-                      views=[views[i] for i in chosen], images=images, masks=masks,
+        check_lens_size(stack.images.shape[1:3], views[i].image, lenses[i], "image", path)
+    return make_scene(root=root, split=split, fmt=NAME,
+                      views=[views[i] for i in chosen], stack=stack,
                       K=[Ks[i] for i in chosen], c2w=[poses[i] for i in chosen])

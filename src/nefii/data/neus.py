@@ -98,6 +98,6 @@ def read(root: Path, split: str) -> SceneData:
         poses.append(check_c2w(c2w, path, key))
 
     views = [View(image=img, mask=masks[i] if masks else None) for i, img in enumerate(images)]
-    imgs, msks, transparent = read_views(views)
-    return make_scene(transparent_background=transparent, root=root, split=split, fmt=NAME, views=views, images=imgs, masks=msks, K=Ks, c2w=poses,
+    stack = read_views(views)
+    return make_scene(root=root, split=split, fmt=NAME, views=views, stack=stack, K=Ks, c2w=poses,
                       indices=range(len(views)), scene_to_source=scale0)

@@ -72,10 +72,10 @@ def read(root: Path, split: str) -> SceneData:
             if mask is None:
                 raise InputError(root / "mask" / image.name, "mask file not found (mask/ holds masks for other views)")
         views.append(View(image=image, mask=mask))
-    images, masks, transparent = read_views(views)
-    h, w = images.shape[1:3]
+    stack = read_views(views)
+    h, w = stack.images.shape[1:3]
     for v, size in zip(views, sizes):
         if size is not None and list(size) != [w, h]:
             raise InputError(v.image, f"image is {w}x{h} but {JSON_NAME} gives img_size {size}")
-    return make_scene(transparent_background=transparent, root=root, split=split, fmt=NAME, views=views, images=images, masks=masks, K=Ks, c2w=poses,
+    return make_scene(root=root, split=split, fmt=NAME, views=views, stack=stack, K=Ks, c2w=poses,
                       indices=frame_indices([v.image.stem for v in views]))

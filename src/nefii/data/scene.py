@@ -139,6 +139,9 @@ class SceneData:
     background_visible: bool = True
     """whether non-object pixels show the environment (photos, or renders with the sky); ``False`` when
     the background is transparent (masks from alpha, e.g. RGBA renders): those pixels observe nothing"""
+    clipped: Bool[Tensor, "N H W"] | None = None
+    """pixels saturated in some channel of an 8/16-bit file (the scene was at least that bright): left out of
+    the fit's photometric loss; ``None`` when no pixel is"""
 
     def __post_init__(self) -> None:
         imgs = self.images
@@ -154,6 +157,9 @@ class SceneData:
         if self.masks is not None:
             _expect(self.masks.shape == (n, h, w) and self.masks.dtype == torch.bool,
                     f"SceneData.masks must be bool ({n}, {h}, {w}), got {self.masks.dtype} {tuple(self.masks.shape)}")
+        if self.clipped is not None:
+            _expect(self.clipped.shape == (n, h, w) and self.clipped.dtype == torch.bool,
+                    f"SceneData.clipped must be bool ({n}, {h}, {w}), got {self.clipped.dtype} {tuple(self.clipped.shape)}")
         _expect(self.scene_to_source.shape == (4, 4), "SceneData.scene_to_source must be 4x4")
         if self.ground_truth is not None:
             for kind in self.ground_truth.kinds():

@@ -59,7 +59,7 @@ def _relit(root: Path, stems: list[str], size: tuple[int, int]) -> list[Relit]:
         imgs = []
         for s in stems:
             f = folder / f"{env}_{s}.png"
-            rgb, _ = read_image(f)
+            rgb = read_image(f).rgb
             check_size(rgb.shape, f, size, "the views")
             imgs.append(rgb)
         out.append(Relit(name=env, images=torch.from_numpy(np.stack(imgs)), envmap=None))
@@ -82,8 +82,8 @@ def read(root: Path, split: str) -> SceneData:
             raise InputError(image, "image file not found")
         mask = root / (f["file_path"] + "_mask.png")
         views.append(View(image=image, mask=mask if mask.is_file() else None))
-    images, masks, transparent = read_views(views)
-    h, w = images.shape[1:3]
+    stack = read_views(views)
+    h, w = stack.images.shape[1:3]
     Ks = [intrinsics(meta, f, w, h, path, f"frame {i} ({f['file_path']})") for i, f in enumerate(frames)]
 
     stems = [Path(f["file_path"]).name for f in frames]
@@ -100,12 +100,11 @@ def read(root: Path, split: str) -> SceneData:
             check_size(a.shape, p, (h, w), views[0].image)
         stacked = np.stack(arrs)
         gt[kind] = torch.from_numpy(stacked[..., 0] if channels == 1 else stacked)
-    if gt and masks is not None:
-        gt["mask"] = torch.from_numpy(masks)
+    if gt and stack.masks is not None:
+        gt["mask"] = torch.from_numpy(stack.masks)
 
     return make_scene(
-        transparent_background=transparent,
-        root=root, split=split, fmt=NAME, views=views, images=images, masks=masks, K=Ks, c2w=poses,
+        root=root, split=split, fmt=NAME, views=views, stack=stack, K=Ks, c2w=poses,
         indices=frame_indices(stems),
         scene_to_source=np.diag([1 / TRANSLATION_SCALE] * 3 + [1.0]),
         ground_truth=GroundTruth(**gt) if gt else None,

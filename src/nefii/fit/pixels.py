@@ -45,7 +45,8 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
     """Cast every pixel once. Object pixels: the ray hits the mesh (and the mask, if any, says object).
     Background pixels: no hit (and the mask, if any, says background), and only where the background
     is visible at all (not for transparent RGBA renders). Pixels where mask and geometry disagree
-    (silhouette errors, anti-aliased edges) are left out of both."""
+    (silhouette errors, anti-aliased edges) are left out of both, and so are clipped pixels (their true
+    colour is unknown: fitting them as if the scene were that bright would darken a sun's highlight)."""
     pts, rgb, bg_d, bg_c = [], [], [], []
     for v in range(len(scene)):
         o, d = view_rays(scene, v)
@@ -55,6 +56,9 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
         if scene.masks is not None:
             m = scene.masks[v].reshape(-1)
             obj, bg = obj & m, bg & ~m
+        if scene.clipped is not None:
+            keep = ~scene.clipped[v].reshape(-1)
+            obj, bg = obj & keep, bg & keep
         dirs = d.reshape(-1, 3)
         pts.append(SurfacePoints.from_hit(hit, obj, -dirs[obj]))
         rgb.append(colour[obj])

@@ -109,7 +109,9 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
         f"{describe_geometry(source, geometry, cfg, features.dim if features else 0)}")
     check_in_view(scene, box, source)
     pixels = first_hits(scene, geometry).to(device)
-    say(f"{len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels")
+    clipped = 0 if scene.clipped is None else int(scene.clipped.sum())
+    say(f"{len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels"
+        + (f"; {clipped} clipped pixels (some channel at the file's top value) left out" if clipped else ""))
     model = build_model(cfg, box, features)
     if checkpoint is None:
         n_sharp = initialise_light(model, pixels, geometry, cfg)

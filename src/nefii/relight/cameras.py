@@ -35,7 +35,7 @@ def _size(meta: dict, path: Path, frames: list[dict]) -> tuple[int, int]:
         except InputError:
             raise InputError(path, "has no 'w' and 'h' (image size in pixels) and its first frame's image "
                                    "is not there to read them from") from None
-        h, w = read_image(image)[0].shape[:2]
+        h, w = read_image(image).rgb.shape[:2]
     if not all(isinstance(v, (int, float)) and float(v).is_integer() and v > 0 for v in (w, h)):
         raise InputError(path, f"'w' and 'h' must be positive whole numbers, got w={w!r}, h={h!r}")
     need, have = BYTES_PER_PIXEL * float(w) * float(h), machine_memory_bytes()
