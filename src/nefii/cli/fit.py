@@ -12,7 +12,7 @@ from ..errors import InputError
 from ..fit.config import PRESETS, FitConfig, resolve_config
 from ..fit.distributed import DistContext, init_distributed, local_device, parameter_checksums, shutdown
 from ..fit.logging import RunLogger
-from ..fit.outputs import read_config, write_config, write_outputs
+from ..fit.outputs import read_config, write_config, write_exposure, write_outputs
 from ..fit.preview import write_preview
 from ..fit.session import prepare_fit
 from ..fit.trainer import NonFiniteLoss
@@ -121,6 +121,8 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: R
         say(f"nefii fit: the {ctx.world_size} process replicas are in sync (parameter sum {sums[0]:.6g})")
     if ctx.is_main:
         write_outputs(out, cfg, trainer.model, session.box, Path(args.data).resolve(), session.source)
+        if trainer.gains is not None:
+            write_exposure(out, session.scene.names, trainer.gains.all())
         wall = time.time() - t0
         stats = {"steps": trainer.step, "steps_this_session": trainer.step - step0, "wall_s_this_session": wall,
                  "steps_per_s": (trainer.step - step0) / max(wall, 1e-9), "processes": ctx.world_size,

@@ -119,6 +119,10 @@ class FitConfig:
     light_prior: Annotated[float, Range(0)] = 2e-4
     """weight of a prior that darkens the light where the object barely sees it (0: off, as the paper;
     :mod:`nefii.fit.light_prior`)"""
+    exposure: Literal["shared", "per_view"] = "shared"
+    """``shared``: every view shares one exposure and white balance (renders, a camera on manual); ``per_view``:
+    a learned RGB gain per training view, view 0 the reference (phone photos: auto exposure and white
+    balance; :mod:`nefii.fit.exposure`). Eval and relight render without gains"""
     secondary_buffer: Annotated[int, Range(1)] = 65536
     """secondary hits kept for the unobserved step"""
     ray_offset: Annotated[float, Range(0, 0.1)] = 1e-4

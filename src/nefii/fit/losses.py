@@ -58,13 +58,15 @@ def pair_distance(a: Tensor, b: Tensor, target: Tensor, tone: str) -> Tensor:
     return ((a - target) * w * (b - target) * w).mean()
 
 
-def render_distance(traced: PathTraced, target: Tensor, tone: str, kind: str) -> Tensor:
-    """The distance between a path-traced colour and ``target`` under loss ``kind``."""
+def render_distance(traced: PathTraced, target: Tensor, tone: str, kind: str, gain: Tensor | None = None) -> Tensor:
+    """The distance between a path-traced colour (times the views' ``gain``, if any) and ``target`` under loss
+    ``kind``."""
+    g = 1.0 if gain is None else gain
     if kind != "l2_pair":
-        return distance(tonemap(traced.radiance.rgb, tone), tonemap(target, tone), kind)
+        return distance(tonemap(g * traced.radiance.rgb, tone), tonemap(target, tone), kind)
     if traced.pair is None:
         raise ValueError("loss l2_pair needs num_samples >= 2 (two independent half estimates)")
-    return pair_distance(traced.pair[0].rgb, traced.pair[1].rgb, target, tone)
+    return pair_distance(g * traced.pair[0].rgb, g * traced.pair[1].rgb, target, tone)
 
 
 @dataclass(frozen=True)
@@ -80,6 +82,17 @@ class LossTerms:
     """albedo smoothness prior (not in the paper; None when off)"""
     light: Tensor | None = None
     """the prior on the light where the object barely sees it (:mod:`nefii.fit.light_prior`; None when off)"""
+    exposure: Tensor | None = None
+    """the per-view gains' prior (:mod:`nefii.fit.exposure`; None with one shared exposure)"""
+
+
+@dataclass(frozen=True)
+class Gains:
+    """The view gains of one batch (:mod:`nefii.fit.exposure`) and their prior's value."""
+
+    pixels: Float[Tensor, "B 3"]
+    background: Float[Tensor, "G 3"]
+    prior: Tensor
 
 
 @dataclass(frozen=True)
@@ -112,22 +125,25 @@ def smoothness(albedo: Float[Tensor, "B 3"], neighbour_albedo: Float[Tensor, "B 
 def observed_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], target: Float[Tensor, "B 3"],
                   env_bg: Float[Tensor, "G 3"], target_bg: Float[Tensor, "G 3"], tone: str, kind: str,
                   beta1: float = 1.0, beta2: float = 1.0, smooth: Tensor | None = None,
-                  light: Tensor | None = None) -> LossTerms:
-    """Eq. 7: ``d(c_pt, c) + beta1 d(L(x,n,wo), c) + beta2 |E(d_bg) - c_bg|_2^2`` (+ the priors' values).
+                  light: Tensor | None = None, gains: Gains | None = None) -> LossTerms:
+    """Eq. 7: ``d(g c_pt, c) + beta1 d(g L(x,n,wo), c) + beta2 |g E(d_bg) - c_bg|_2^2`` (+ the priors' values),
+    ``g`` each pixel's view gain (1 without ``gains``).
 
     ``cache_rgb`` is the cache's own colour at the pixels' points, ``env_bg`` the environment along the
     background pixels' directions (``G`` may be 0)."""
-    l_render = render_distance(traced, target, tone, kind)
-    l_cache = distance(tonemap(cache_rgb, tone), tonemap(target, tone), kind)
+    g, g_bg = (1.0, 1.0) if gains is None else (gains.pixels, gains.background)
+    l_render = render_distance(traced, target, tone, kind, None if gains is None else gains.pixels)
+    l_cache = distance(tonemap(g * cache_rgb, tone), tonemap(target, tone), kind)
     if len(env_bg):
-        l_bg = (tonemap(env_bg, tone) - tonemap(target_bg, tone)).square().mean()
+        l_bg = (tonemap(g_bg * env_bg, tone) - tonemap(target_bg, tone)).square().mean()
     else:
         l_bg = l_render.new_zeros(())
     total = l_render + beta1 * l_cache + beta2 * l_bg
-    for prior in (smooth, light):
+    exposure = None if gains is None else gains.prior
+    for prior in (smooth, light, exposure):
         if prior is not None:
             total = total + prior
-    return LossTerms(total, l_render, l_cache, l_bg, smooth, light)
+    return LossTerms(total, l_render, l_cache, l_bg, smooth, light, exposure)
 
 
 def unobserved_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], tone: str, kind: str) -> LossTerms:

@@ -87,6 +87,12 @@ def write_outputs(folder: Path, cfg: FitConfig, model: NeFIIModel, box: tuple[to
                 np.save(tmp, sg_array(model.env()))
 
 
+def write_exposure(folder: Path, names: tuple[str, ...], gains: torch.Tensor) -> None:
+    """``exposure.json``: each training view's learned RGB gain (``exposure = per_view``), by image file."""
+    rows = {name: [round(float(x), 5) for x in g] for name, g in zip(names, gains.detach().cpu())}
+    write_text_atomic(folder / "exposure.json", json.dumps({"reference": names[0], "gains": rows}, indent=2) + "\n")
+
+
 def load_run(folder: str | Path, device: torch.device | str = "cpu") -> FittedRun:
     folder = Path(folder)
     path = folder / "model.pt"

@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor
 
 from ..camera import pixel_rays
@@ -25,14 +25,19 @@ class Pixels:
     bg_dirs: Float[Tensor, "Q 3"]
     """view-ray directions of background pixels (they see the environment directly)"""
     bg_rgb: Float[Tensor, "Q 3"]
+    view: Int[Tensor, "P"]
+    """the training view each object pixel is from"""
+    bg_view: Int[Tensor, "Q"]
+    """the training view each background pixel is from"""
 
     def select(self, obj: Tensor, bg: Tensor) -> "Pixels":
         """The object pixels ``obj`` and background pixels ``bg`` (index tensors)."""
-        return Pixels(self.points[obj], self.rgb[obj], self.bg_dirs[bg], self.bg_rgb[bg])
+        return Pixels(self.points[obj], self.rgb[obj], self.bg_dirs[bg], self.bg_rgb[bg], self.view[obj],
+                      self.bg_view[bg])
 
     def to(self, device: torch.device | str) -> "Pixels":
         return Pixels(self.points.map(lambda t: t.to(device)), self.rgb.to(device), self.bg_dirs.to(device),
-                      self.bg_rgb.to(device))
+                      self.bg_rgb.to(device), self.view.to(device), self.bg_view.to(device))
 
 
 def view_rays(scene: SceneData, view: int) -> tuple[Float[Tensor, "H W 3"], Float[Tensor, "H W 3"]]:
@@ -47,7 +52,7 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
     is visible at all (not for transparent RGBA renders). Pixels where mask and geometry disagree
     (silhouette errors, anti-aliased edges) are left out of both, and so are clipped pixels (their true
     colour is unknown: fitting them as if the scene were that bright would darken a sun's highlight)."""
-    pts, rgb, bg_d, bg_c = [], [], [], []
+    pts, rgb, bg_d, bg_c, views, bg_views = [], [], [], [], [], []
     for v in range(len(scene)):
         o, d = view_rays(scene, v)
         hit = geometry.intersect(Rays(o.reshape(-1, 3), d.reshape(-1, 3)))
@@ -64,7 +69,9 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
         rgb.append(colour[obj])
         bg_d.append(dirs[bg])
         bg_c.append(colour[bg])
+        views.append(torch.full((int(obj.sum()),), v, dtype=torch.long))
+        bg_views.append(torch.full((int(bg.sum()),), v, dtype=torch.long))
     points = SurfacePoints.cat(pts)
     if len(points) == 0:
         raise InputError(scene.root, "no training pixel sees the geometry: do the cameras, masks and mesh agree?")
-    return Pixels(points, torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c))
+    return Pixels(points, torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c), torch.cat(views), torch.cat(bg_views))

@@ -117,7 +117,7 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
         n_sharp = initialise_light(model, pixels, geometry, cfg)
         if n_sharp:
             say(f"lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
-    trainer = Trainer(cfg, model, geometry, pixels, device, dist)
+    trainer = Trainer(cfg, model, geometry, pixels, device, dist, num_views=len(scene))
     if checkpoint is not None:
         checkpoint.restore(trainer.load_state_dict, "this run's model")
         say(f"resumed from {checkpoint.path} at step {trainer.step}")

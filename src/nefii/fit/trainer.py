@@ -19,8 +19,9 @@ from ..io.checkpoints import save_checkpoint
 from ..render.brdf import Material
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
+from .exposure import ViewGains
 from .light_prior import light_coverage, unseen_light_prior
-from .losses import LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, smoothness, unobserved_loss
+from .losses import Gains, LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, smoothness, unobserved_loss
 from .model import NeFIIModel, decode_material
 from .path_trace import SurfacePoints, Transport, path_trace
 from .pixels import Pixels
@@ -46,11 +47,16 @@ class StepLog:
 
 class Trainer:
     def __init__(self, cfg: FitConfig, model: NeFIIModel, geometry: Geometry, pixels: Pixels,
-                 device: torch.device, dist: DistContext = DistContext()) -> None:
+                 device: torch.device, dist: DistContext = DistContext(), num_views: int = 1) -> None:
+        """``num_views``: the training views (``exposure = per_view`` learns a gain for each but the first)."""
         self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
         self.dist = dist
+        self.gains = ViewGains(num_views).to(device) if cfg.exposure == "per_view" else None
         self.params = [p for p in self.model.parameters() if p.requires_grad]   # a frozen SDF's are not
         groups = model.param_groups(cfg.lr, cfg.lr_light, cfg.lr_light_shape)
+        if self.gains is not None:  # a gain is a light level: it moves at the light's rate
+            self.params.append(self.gains.log_gain)
+            groups.append({"params": [self.gains.log_gain], "lr": cfg.lr_light})
         try:  # the fused kernel is ~5x faster on the CPU for the large hash-grid tables
             self.optimizer = torch.optim.Adam(groups, fused=True)
         except (RuntimeError, TypeError):
@@ -107,9 +113,12 @@ class Trainer:
             light = None
             if self.coverage is not None:
                 light = unseen_light_prior(*model.env.energy_atoms(), self.coverage, cfg.light_prior)
+            gains = None
+            if self.gains is not None:
+                gains = Gains(self.gains(batch.view), self.gains(batch.bg_view), self.gains.prior())
             terms = observed_loss(traced, model.cache(pts.position, pts.normal, pts.wo), batch.rgb,
                                   model.env.radiance(batch.bg_dirs), batch.bg_rgb, cfg.tonemap, cfg.loss,
-                                  cfg.beta1, cfg.beta2, smooth, light)
+                                  cfg.beta1, cfg.beta2, smooth, light, gains)
             self.buffer.add(traced.secondary)
             kind = "observed"
         if any_rank(not bool(torch.isfinite(terms.total)), self.dist, self.device):
@@ -132,11 +141,14 @@ class Trainer:
             "generator": self.generator.get_state(),
             "buffer": self.buffer.state_dict(),
             "config": config_to_dict(self.cfg),
+            "gains": None if self.gains is None else self.gains.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
         self.step = int(state["step"])
         self.model.load_state_dict(state["model"])
+        if self.gains is not None:
+            self.gains.load_state_dict(state["gains"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         if self.dist.rank == 0:
