@@ -29,6 +29,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seeds camera placement and sampling (default 0)")
     p.add_argument("--env-height", type=int, default=1024,
                    help="rows of envmap.exr and relight maps, columns twice that (default 1024)")
+    p.add_argument("--photo", action="store_true",
+                   help="also photograph it as a phone would: OUT/clean is the scene, OUT/photo the capture "
+                        "(8-bit JPEG, clipped highlights, per-view exposure and white balance, lens distortion, "
+                        "noise, no masks; nerfstudio transforms.json). Score a fit of OUT/photo with "
+                        "`nefii eval RUN --data OUT/clean`")
     p.set_defaults(func=run)
 
 
@@ -58,7 +63,13 @@ def run(args: argparse.Namespace) -> int:
     settings.validate()
     out = args.out if args.out is not None else Path("scenes") / args.scene
     t0 = time.time()
-    synthesize(settings, out)
-    print(f"nefii synth: wrote {out} ({settings.views} train + {settings.test_views} test views, "
+    clean = out / "clean" if args.photo else out
+    synthesize(settings, clean)
+    print(f"nefii synth: wrote {clean} ({settings.views} train + {settings.test_views} test views, "
           f"{settings.res}x{settings.res}, {settings.spp} spp) in {time.time() - t0:.0f} s")
+    if args.photo:
+        from ..synth.photo import PhotoSettings, make_photos
+
+        make_photos(clean, out / "photo", PhotoSettings(seed=args.seed))
+        print(f"nefii synth: wrote {out / 'photo'} (the same views as a phone's JPEGs; nerfstudio transforms.json)")
     return 0
