@@ -205,12 +205,16 @@ def write_physg(root: Path, t: Truth) -> None:
 
 def write_colmap(root: Path, t: Truth, *, binary: bool, masks: bool = True, model: str = "PINHOLE",
                  extra: tuple[float, ...] = ()) -> None:
-    """COLMAP sparse model written by pycolmap; images in ``images/``, masks ``masks/<name>.png``."""
+    """COLMAP sparse model written by pycolmap; images in ``images/``, masks ``masks/<name>.png``.
+
+    ``extra``: the model's parameters after the focal length(s) and principal point; models with
+    one focal length (``SIMPLE_*``, ``RADIAL``, ``RADIAL_FISHEYE``) get ``fx``."""
     import pycolmap
 
     rec = pycolmap.Reconstruction()
     fx, fy, cx, cy = t.K[0, 0], t.K[1, 1], t.K[0, 2], t.K[1, 2]
-    params = [fx, fy, cx, cy] if model in ("PINHOLE", "OPENCV") else [fx, cx, cy]
+    one_focal = model.startswith("SIMPLE_") or model in ("RADIAL", "RADIAL_FISHEYE")
+    params = [fx, cx, cy] if one_focal else [fx, fy, cx, cy]
     rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=W, height=H, params=params + list(extra),
                                                     camera_id=1))
     for i in range(t.n):

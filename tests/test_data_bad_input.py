@@ -215,11 +215,22 @@ def test_colmap_malformed_model(tmp_path):
     assert "sparse/0" in e.path and "not a readable COLMAP model" in e.problem
 
 
-def test_colmap_distortion_refused(tmp_path):
+def test_colmap_rational_distortion_refused(tmp_path):
     pytest.importorskip("pycolmap")
-    write_colmap(tmp_path, TRUTH, binary=True, model="SIMPLE_RADIAL", extra=(0.05,))
+    write_colmap(tmp_path, TRUTH, binary=True, model="FULL_OPENCV",
+                 extra=(-0.1, 0.0, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0))  # k1, k2, p1, p2, k3, k4, k5, k6
     e = load_error(tmp_path)
-    assert e.path.endswith("cameras.bin") and "distortion (k=0.05)" in e.problem and "image_undistorter" in e.problem
+    assert e.path.endswith("sparse/0/cameras.bin") and "camera 1 (FULL_OPENCV)" in e.problem
+    assert "rational distortion terms (k4=0.01) are not supported" in e.problem and "image_undistorter" in e.problem
+    assert not (tmp_path / "nefii_undistorted").exists()
+
+
+def test_colmap_unsupported_camera_model_refused(tmp_path):
+    pytest.importorskip("pycolmap")
+    write_colmap(tmp_path, TRUTH, binary=False, model="FOV", extra=(0.9,))
+    e = load_error(tmp_path)
+    assert e.path.endswith("sparse/0/cameras.txt") and "camera 1 (FOV): camera model not supported" in e.problem
+    assert "image_undistorter" in e.problem
 
 
 def test_colmap_missing_image(tmp_path):

@@ -1,13 +1,17 @@
 """Each dataset reader reads a fixture of its format and returns the cameras and images it was written from."""
 from __future__ import annotations
 
+import json
+import shutil
+
 import numpy as np
 import pytest
 import torch
 
-from data_fixtures import (H, NEUS_SCALE_MAT, W, make_truth, write_colmap, write_nefii, write_nerf_synthetic,
+from data_fixtures import (GL, H, NEUS_SCALE_MAT, W, make_truth, write_colmap, write_nefii, write_nerf_synthetic,
                            write_neus, write_physg, write_synthetic4relight)
 from nefii.data import SceneData, load_scene
+from nefii.data.undistort import CACHE_DIR, MANIFEST, Lens, undistorted_K
 
 pytest.importorskip("OpenEXR")
 
@@ -160,12 +164,78 @@ def test_colmap_without_masks_simple_pinhole(tmp_path):
     assert_matches(scene, CENTRED, masks=False)
 
 
-def test_colmap_distortion_ignored_on_request(tmp_path):
+OPENCV_LENS = (-0.1, 0.02, 0.002, -0.001)
+"""COLMAP OPENCV's ``k1, k2, p1, p2``"""
+
+
+def test_colmap_opencv_distortion_is_undistorted_once(tmp_path, capsys):
     pytest.importorskip("pycolmap")
-    write_colmap(tmp_path, TRUTH, binary=False, model="OPENCV", extra=(0.1, 0.0, 0.0, 0.0))
-    with pytest.warns(UserWarning, match="ignoring lens distortion"):
-        scene = load_scene(tmp_path, allow_distortion=True)
-    assert_matches(scene, TRUTH)
+    write_colmap(tmp_path, TRUTH, binary=False, model="OPENCV", extra=OPENCV_LENS)
+    scene = load_scene(tmp_path)
+    K_new = undistorted_K(Lens("OPENCV", TRUTH.K, OPENCV_LENS + (0.0,), W, H))
+    assert not np.allclose(K_new, TRUTH.K, atol=0.1)  # alpha 0 zooms in
+    np.testing.assert_allclose(scene.cameras.K.numpy(), np.broadcast_to(K_new, (TRUTH.n, 3, 3)), atol=1e-9)
+    np.testing.assert_allclose(scene.source_c2w().numpy(), TRUTH.c2w, atol=1e-9)
+    assert scene.names == tuple(f"images/r_{i}.png" for i in range(TRUTH.n))
+    assert not np.allclose(scene.images.numpy(), TRUTH.images, atol=1e-2), "the images are resampled"
+    assert scene.masks is not None and scene.masks.shape == (TRUTH.n, H, W)
+
+    manifest = tmp_path / CACHE_DIR / MANIFEST
+    assert json.loads(manifest.read_text())["source"] == "cameras.txt"
+    assert capsys.readouterr().err.startswith("nefii: undistorted 4 images (OPENCV, k1=-0.1, k2=0.02,")
+    written = manifest.stat().st_mtime_ns
+    again = load_scene(tmp_path)
+    assert capsys.readouterr().err == "" and manifest.stat().st_mtime_ns == written, "the cache is reused"
+    assert torch.equal(again.images, scene.images) and torch.equal(again.cameras.K, scene.cameras.K)
+    assert torch.equal(again.masks, scene.masks)
+
+
+def test_colmap_undistorts_as_the_nerfstudio_reader_does(tmp_path):
+    """The same photographs and lens, as a COLMAP model and as a transforms.json, give the same scene."""
+    pytest.importorskip("pycolmap")
+    write_colmap(tmp_path / "colmap", TRUTH, binary=True, model="OPENCV", extra=OPENCV_LENS)
+    shutil.copytree(tmp_path / "colmap/images", tmp_path / "ns/images")
+    shutil.copytree(tmp_path / "colmap/masks", tmp_path / "ns/masks")
+    (fx, _, cx), (_, fy, cy) = TRUTH.K[:2]
+    frames = [{"file_path": f"images/r_{i}.png", "mask_path": f"masks/r_{i}.png.png",
+               "transform_matrix": (TRUTH.c2w[i] @ GL).tolist()} for i in range(TRUTH.n)]
+    (tmp_path / "ns/transforms.json").write_text(json.dumps(
+        {"camera_model": "OPENCV", "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": W, "h": H,
+         **dict(zip(("k1", "k2", "p1", "p2"), OPENCV_LENS)), "frames": frames}))
+    colmap, ns = load_scene(tmp_path / "colmap"), load_scene(tmp_path / "ns")
+    assert (colmap.format, ns.format) == ("colmap", "nerfstudio")
+    np.testing.assert_allclose(colmap.cameras.K.numpy(), ns.cameras.K.numpy(), atol=1e-12)
+    np.testing.assert_allclose(colmap.cameras.c2w.numpy(), ns.cameras.c2w.numpy(), atol=1e-9)
+    assert torch.equal(colmap.images, ns.images) and torch.equal(colmap.masks, ns.masks)
+
+
+def test_colmap_simple_radial_is_opencv_with_its_k1(tmp_path):
+    pytest.importorskip("pycolmap")
+    write_colmap(tmp_path / "simple", CENTRED, binary=True, model="SIMPLE_RADIAL", extra=(-0.1,))
+    write_colmap(tmp_path / "opencv", CENTRED, binary=True, model="OPENCV", extra=(-0.1, 0.0, 0.0, 0.0))
+    simple, opencv = load_scene(tmp_path / "simple"), load_scene(tmp_path / "opencv")
+    assert not np.allclose(simple.cameras.K.numpy()[0], CENTRED.K, atol=0.1), "k was not ignored"
+    np.testing.assert_array_equal(simple.cameras.K.numpy(), opencv.cameras.K.numpy())
+    assert torch.equal(simple.images, opencv.images) and torch.equal(simple.masks, opencv.masks)
+
+
+@pytest.mark.parametrize("model, extra, lens", [
+    ("RADIAL", (-0.1, 0.03), Lens("OPENCV", CENTRED.K, (-0.1, 0.03, 0.0, 0.0, 0.0), W, H)),
+    ("FULL_OPENCV", (-0.1, 0.03, 0.002, -0.001, 0.05, 0.0, 0.0, 0.0),
+     Lens("OPENCV", CENTRED.K, (-0.1, 0.03, 0.002, -0.001, 0.05), W, H)),
+    ("OPENCV_FISHEYE", (0.05, -0.01, 0.003, -0.001),
+     Lens("OPENCV_FISHEYE", CENTRED.K, (0.05, -0.01, 0.003, -0.001), W, H)),
+], ids=["RADIAL", "FULL_OPENCV", "OPENCV_FISHEYE"])
+def test_colmap_lens_models(tmp_path, model, extra, lens):
+    """Each distorted COLMAP model is the OpenCV lens with its coefficients in their places."""
+    pytest.importorskip("pycolmap")
+    write_colmap(tmp_path, CENTRED, binary=True, model=model, extra=extra)
+    K_new = undistorted_K(lens)
+    np.testing.assert_allclose(load_scene(tmp_path).cameras.K.numpy(), np.broadcast_to(K_new, (CENTRED.n, 3, 3)),
+                               atol=1e-9)
+    manifest = json.loads((tmp_path / CACHE_DIR / MANIFEST).read_text())
+    assert [v["model"] for v in manifest["views"]] == [lens.model] * CENTRED.n
+    assert manifest["views"][0]["coeffs"] == list(lens.coeffs)
 
 
 # ---------------------------------------------------------------------------- all agree

@@ -3,19 +3,22 @@
     sparse/0/ (or sparse/, or the folder itself)   cameras.bin|txt, images.bin|txt (+ points3D, rigs, frames)
     images/<name>                                  the images, by the model's image names
     masks/<name>.png or masks/<stem>.png           optional masks (COLMAP's own naming is <name>.png)
+    nefii_undistorted/                             written by nefii: undistorted images and masks (``undistort``)
 
 Views are the registered images in name order. COLMAP's pose is world-to-camera in OpenCV axes;
 nefii inverts it and keeps COLMAP's world frame (arbitrary scale and orientation: nothing is
 normalised). COLMAP puts pixel centres at +0.5, as nefii does, so ``K`` is taken as is.
 
-Camera models: ``SIMPLE_PINHOLE`` and ``PINHOLE`` are exact. ``SIMPLE_RADIAL``, ``RADIAL``,
-``OPENCV`` and ``FULL_OPENCV`` with non-zero distortion are refused (undistort first with
-``colmap image_undistorter``) unless ``allow_distortion=True``, which warns and keeps only
-the pinhole part. Fisheye and other models are refused.
+Camera models: ``SIMPLE_PINHOLE`` and ``PINHOLE`` are read as they are. Distorted cameras are
+undistorted once with OpenCV into ``nefii_undistorted/`` (keyed by the cameras file and the
+images) and read from there with the pinhole ``K`` OpenCV chose, as the nerfstudio reader does:
+``SIMPLE_RADIAL`` (``k``), ``RADIAL`` (``k1, k2``), ``OPENCV`` (``k1, k2, p1, p2``) and
+``FULL_OPENCV`` (``k1, k2, p1, p2, k3``) are OpenCV's Brown-Conrady lens, ``OPENCV_FISHEYE``
+(``k1..k4``) its fisheye. ``FULL_OPENCV``'s rational terms (non-zero ``k4, k5, k6``) and other
+models (``FOV``, the other fisheyes, ...) are refused: undistort with ``colmap image_undistorter``.
 """
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +26,7 @@ import numpy as np
 from ..errors import InputError
 from .files import IMAGE_SUFFIXES
 from .scene import SceneData
+from .undistort import COEFFS, Lens, undistort_cached
 from .validate import check_c2w, check_K
 from .assemble import View, make_scene, read_views
 
@@ -30,8 +34,12 @@ NAME = "colmap"
 DESCRIPTION = "sparse/0/, sparse/ or ./ with cameras.bin|txt + images.bin|txt, and images/ (COLMAP)"
 
 MODEL_DIRS = ("sparse/0", "sparse", ".")
-PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
-DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+LENS_MODELS: dict[str, str] = {"SIMPLE_PINHOLE": "PINHOLE", "PINHOLE": "PINHOLE", "SIMPLE_RADIAL": "OPENCV",
+                               "RADIAL": "OPENCV", "OPENCV": "OPENCV", "FULL_OPENCV": "OPENCV",
+                               "OPENCV_FISHEYE": "OPENCV_FISHEYE"}
+"""each COLMAP camera model nefii reads, and the ``undistort.Lens`` model it is"""
+OPENCV_NAMES = {"k": "k1"}
+"""COLMAP coefficient names that OpenCV spells otherwise (SIMPLE_RADIAL's ``k``); the others agree"""
 
 
 def _has(folder: Path, stem: str) -> bool:
@@ -67,28 +75,30 @@ def _mask_for(folder: Path, name: str) -> Path | None:
     return None
 
 
-def _intrinsics(cam, cameras_file: Path, allow_distortion: bool) -> np.ndarray:
+def lens_of(cam, cameras_file: Path) -> Lens:
+    """A COLMAP camera as a :class:`Lens`: its pinhole part, and its coefficients by OpenCV's names."""
     model = cam.model.name
     where = f"camera {cam.camera_id} ({model})"
-    if model not in PINHOLE_MODELS + DISTORTED_MODELS:
-        raise InputError(cameras_file, f"{where}: camera model not supported (nefii needs pinhole cameras; "
+    if model not in LENS_MODELS:
+        raise InputError(cameras_file, f"{where}: camera model not supported (nefii reads {', '.join(LENS_MODELS)}; "
                                        "undistort with `colmap image_undistorter`)")
-    extra = [float(cam.params[i]) for i in cam.extra_params_idxs()]
-    if any(extra):
-        names = cam.params_info.split(", ")[-len(extra):]
-        values = ", ".join(f"{n}={v:.4g}" for n, v in zip(names, extra))
-        if not allow_distortion:
-            raise InputError(cameras_file, f"{where}: lens distortion ({values}) is not modelled by nefii; "
-                                           "undistort with `colmap image_undistorter` first, "
-                                           "or pass allow_distortion=True to ignore it")
-        warnings.warn(f"{cameras_file}: {where}: ignoring lens distortion ({values})", stacklevel=3)
+    lens_model = LENS_MODELS[model]
+    names = cam.params_info.split(", ")
+    coeffs = {OPENCV_NAMES.get(names[i], names[i]): float(cam.params[i]) for i in cam.extra_params_idxs()}
+    rational = {n: v for n, v in coeffs.items() if n not in COEFFS[lens_model] and v != 0.0}  # FULL_OPENCV's k4..k6
+    if rational:
+        values = ", ".join(f"{n}={v:.4g}" for n, v in rational.items())
+        raise InputError(cameras_file, f"{where}: rational distortion terms ({values}) are not supported; "
+                                       "undistort with `colmap image_undistorter` first")
     K = np.array([[cam.focal_length_x, 0.0, cam.principal_point_x],
                   [0.0, cam.focal_length_y, cam.principal_point_y],
                   [0.0, 0.0, 1.0]])
-    return check_K(K, cameras_file, where)
+    return Lens(model=lens_model, K=check_K(K, cameras_file, where),
+                coeffs=tuple(coeffs.get(n, 0.0) for n in COEFFS[lens_model]),
+                width=int(cam.width), height=int(cam.height))
 
 
-def read(root: Path, split: str, *, allow_distortion: bool = False) -> SceneData:
+def read(root: Path, split: str) -> SceneData:
     mdir = model_dir(root)
     if mdir is None:
         raise InputError(root, "no COLMAP model (cameras.bin|txt and images.bin|txt) in sparse/0, sparse or here")
@@ -104,11 +114,11 @@ def read(root: Path, split: str, *, allow_distortion: bool = False) -> SceneData
     if not registered:
         raise InputError(images_file, "no registered (posed) images in this model")
 
+    by_camera = {cid: lens_of(rec.cameras[cid], cameras_file) for cid in sorted({im.camera_id for im in registered})}
+    lenses = [by_camera[im.camera_id] for im in registered]
     has_masks = (root / "masks").is_dir()
-    views, Ks, poses = [], [], []
+    views, poses = [], []
     for im in registered:
-        cam = rec.cameras[im.camera_id]
-        Ks.append(_intrinsics(cam, cameras_file, allow_distortion))
         w2c = np.eye(4)
         w2c[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
         w2c = check_c2w(w2c, images_file, f"image '{im.name}'")
@@ -126,7 +136,16 @@ def read(root: Path, split: str, *, allow_distortion: bool = False) -> SceneData
                 raise InputError(root / "masks" / f"{im.name}.png",
                                  "mask file not found (masks/ holds masks for other views)")
         views.append(View(image=image, mask=mask))
-    stack = read_views(views)
+
+    # ---- undistort every distorted view (every read of this model shares the cache)
+    sources, Ks = list(views), [lens.K for lens in lenses]
+    distorted = [i for i, lens in enumerate(lenses) if lens.distorted]
+    if distorted:
+        done = undistort_cached(root, cameras_file, [(views[i], lenses[i]) for i in distorted])
+        for i, (view, K) in zip(distorted, done):
+            sources[i], Ks[i] = view, K
+
+    stack = read_views(sources)
     h, w = stack.images.shape[1:3]
     for v, im in zip(views, registered):
         cam = rec.cameras[im.camera_id]

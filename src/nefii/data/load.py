@@ -75,7 +75,7 @@ def load_scene(path: str | Path, split: str = "train", *, format: str | None = N
     """Read one split of the scene at ``path`` into :class:`SceneData`.
 
     ``format`` names a reader (a key of :data:`FORMATS`) instead of detecting it. ``options`` go
-    to the reader: ``prefer`` (nerf: suffix order for images), ``allow_distortion`` (colmap).
+    to the reader: ``prefer`` (nerf: suffix order for images).
     Every problem with the files is an :class:`InputError` naming the file.
     """
     root = Path(path)

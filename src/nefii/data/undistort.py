@@ -17,7 +17,8 @@ Pixel centres: nefii (like COLMAP and nerfstudio) puts pixel ``(i, j)``'s centre
 OpenCV at ``(j, i)``; ``K`` is shifted by half a pixel on the way into OpenCV and back.
 
 The folder is written whole or not at all (``io.atomic.atomic_dir``) and is reused while its key, a
-hash of ``transforms.json`` and of every image and mask file it undistorts, is unchanged; otherwise
+hash of the capture's camera file (nerfstudio's ``transforms.json``, COLMAP's ``cameras.bin|txt``) and of
+every image and mask file it undistorts, is unchanged; otherwise
 it is rebuilt as a whole and one line says so.
 """
 from __future__ import annotations
