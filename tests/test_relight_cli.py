@@ -70,6 +70,19 @@ def test_relight_writes_images_grids_and_merged_metrics(scene, fitted, capsys):
     assert not (fitted / "other" / "metrics.json").exists()
 
 
+def test_dataset_lights_renders_every_relit_environment_under_its_own_map(scene, fitted, tmp_path):
+    out = tmp_path / "lights"
+    assert main(["relight", str(fitted), "--dataset-lights", "--out", str(out), "--spp", "4", "--max-bounces", "2",
+                 "--quiet"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics) == {*relight_envs(), "dataset_lights"}
+    for env in relight_envs():
+        assert [v["index"] for v in metrics[env]["views"]] == [0, 1] and (out / env / "1.exr").is_file()
+        assert all(isinstance(metrics[env][k], float) for k in ("psnr", "ssim", "psnr_h", "psnr_l"))
+        assert metrics[env]["envmap"] == f"the dataset's map of '{env}'"
+    assert metrics["dataset_lights"]["view_count"] == 4 and metrics["dataset_lights"]["format"] == "nerf"
+
+
 def test_true_materials_reproduce_the_relit_ground_truth(scene):
     """The pipeline's conventions (cameras, env file, mapping) against the fixture's independent
     renderer (SG light evaluated in closed form, direct light with visibility): with the true

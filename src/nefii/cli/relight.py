@@ -1,13 +1,19 @@
-"""``nefii relight RUN --envmap FILE``: render the fitted object under a new environment by path tracing.
+"""``nefii relight RUN --envmap FILE | --dataset-lights``: render the fitted object under other light by path
+tracing.
 
-Writes ``OUT/<env>/K.exr`` (linear RGBA, premultiplied: coverage in A, background 0, as the
-dataset's images) and ``K.png`` (sRGB with highlights rolled off, straight alpha) for every view
-``K``, and ``render.json`` (what was rendered, with the albedo scale). ``OUT`` is ``RUN/relight``
-unless ``--out`` says otherwise; ``<env>`` is the file's stem, with ``_rot<DEG>`` / ``_ev<EV>``
-appended when turned or exposed. Where the dataset has ground truth for that environment
-(``relight/<env>/``, names matched by stem, map neither turned nor exposed), each view's PSNR and
-SSIM go into ``OUT/metrics.json`` under ``<env>`` (other environments' entries kept) and
-``K_grid.png`` shows GT | relit | error x4.
+``--envmap FILE`` renders the test views (or ``--cameras``) under that map; ``OUT/<env>/`` is named by the
+file's stem, with ``_rot<DEG>`` / ``_ev<EV>`` appended when turned or exposed. ``--dataset-lights`` renders
+every relit set of the dataset's test split under the dataset's own maps into ``OUT/<set>/``: nefii's
+``relight/<env>/`` under ``relight/<env>.exr``, Stanford-ORB's photographs of the object in its other scenes
+(``transforms_novel.json``) each at its own pose under its own measured map.
+
+Writes ``K.exr`` (linear RGBA, premultiplied: coverage in A, background 0, as the dataset's images) and
+``K.png`` (sRGB with highlights rolled off, straight alpha) for every view ``K``, and ``render.json`` (what
+was rendered, with the albedo scale). ``OUT`` is ``RUN/relight`` unless ``--out`` says otherwise. Where there
+is ground truth (``--envmap``: the dataset's relit views of the same name, map neither turned nor exposed),
+each view's PSNR and SSIM and Stanford-ORB's PSNR-H and PSNR-L go into ``OUT/metrics.json`` under the
+folder's name (other entries kept), with ``K_grid.png`` (GT | relit | error x4); ``--dataset-lights`` adds
+``dataset_lights``, the means over all its views (for Stanford-ORB: the benchmark's per-scene relighting score).
 """
 from __future__ import annotations
 
@@ -24,6 +30,7 @@ from ..data import load_scene
 from ..data.scene import Relit
 from ..errors import InputError
 from ..evaluate.outputs import write_grid
+from ..evaluate.stanford_orb import PROTOCOL as ORB_PROTOCOL, relight_scores
 from ..fit.model import decode_material
 from ..fit.outputs import load_run
 from ..io.atomic import atomic_dir, write_text_atomic
@@ -36,6 +43,7 @@ from ..relight.render import render_relit
 from ..relight.scoring import (PROTOCOL, albedo_scale_from_eval, albedo_scale_from_ground_truth, merge_metrics,
                               metrics_entry, scaled_material, score_view, tone_map)
 from ..relight.cameras import Views, views_from_transforms
+from ..relight.sets import RelightSet, dataset_sets, scoring_masks
 from .common import add_threads_flag, pick_device, render_flags, set_threads
 
 
@@ -43,8 +51,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("relight", help="render the fitted object under a new environment map (path tracing)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run", type=Path, help="run folder written by `nefii fit`")
-    p.add_argument("--envmap", type=Path, required=True, metavar="FILE",
-                   help="equirectangular HDR environment (.exr or .hdr), in nefii's mapping (docs/design.md)")
+    light = p.add_mutually_exclusive_group(required=True)
+    light.add_argument("--envmap", type=Path, metavar="FILE",
+                       help="equirectangular HDR environment (.exr or .hdr), in nefii's mapping (docs/design.md)")
+    light.add_argument("--dataset-lights", action="store_true",
+                       help="render every relit set of the dataset's test split under the dataset's own maps and "
+                            "score it (nefii relight/<env>/; Stanford-ORB transforms_novel.json)")
     p.add_argument("--rotate", type=float, default=0.0, metavar="DEG",
                    help="turn the environment about world +Z by DEG degrees, counter-clockwise seen from above "
                         "(a light at azimuth phi moves to phi + DEG)")
@@ -81,32 +93,53 @@ def _warn(caught: list[warnings.WarningMessage]) -> None:
         print(f"nefii relight: warning: {w.message}")
 
 
-def run(args: argparse.Namespace) -> int:
-    render_flags(args)
-    if args.out is not None and args.out.exists() and not args.out.is_dir():
-        raise InputError(args.out, "exists and is not a folder: --out wants a folder")
-    device = pick_device(args.device)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        env = load_environment(args.envmap, args.rotate, args.exposure, device)
-    _warn(caught)
-    fitted = load_run(args.run, device)
-    set_threads(fitted.config.threads if args.threads is None else args.threads)
-    geometry = fitted.open_geometry()
-    name = env_name(args.envmap, args.rotate, args.exposure)
+def _check_modes(args: argparse.Namespace) -> None:
+    if args.dataset_lights:
+        for flag, given in (("--rotate", args.rotate), ("--exposure", args.exposure), ("--cameras", args.cameras)):
+            if given:
+                raise InputError(None, f"{flag}: not with --dataset-lights (the dataset's maps and views are used "
+                                       "as they are)")
 
-    # ---- the views, and the ground truth for this environment if the dataset has it
-    scene, gt = None, None
-    if args.cameras is not None:
-        views = views_from_transforms(args.cameras)
-    else:
-        scene = load_scene(args.data or fitted.data, "test")
-        views = Views(scene.cameras, scene.indices)
-        gt = next((r for r in scene.relit if r.name == args.envmap.stem), None)
+
+def _file_set(args: argparse.Namespace, env, scene, views: Views, name: str) -> RelightSet:
+    """``--envmap``: every view under the file's map; scored against the dataset's same views relit under a map
+    of the file's stem, when the map is neither turned nor exposed."""
+    gt = None
+    if scene is not None:
+        gt = next((r for r in scene.relit if r.name == args.envmap.stem and r.cameras is None), None)
         if gt is not None and (args.rotate or args.exposure):
             print(f"nefii relight: not scored against the dataset's '{gt.name}': the map is turned or exposed")
             gt = None
         _check_same_map(gt, env.image)
+    return RelightSet(name, views, lambda v: env, str(args.envmap), None if gt is None else gt.images,
+                      None if gt is None else scoring_masks(scene))
+
+
+def run(args: argparse.Namespace) -> int:
+    render_flags(args)
+    _check_modes(args)
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        raise InputError(args.out, "exists and is not a folder: --out wants a folder")
+    device = pick_device(args.device)
+    env = None
+    if args.envmap is not None:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            env = load_environment(args.envmap, args.rotate, args.exposure, device)
+        _warn(caught)
+    fitted = load_run(args.run, device)
+    set_threads(fitted.config.threads if args.threads is None else args.threads)
+    geometry = fitted.open_geometry()
+
+    # ---- what to render: the views, the light of each, the truth to score against
+    scene = None
+    if args.cameras is None:
+        scene = load_scene(args.data or fitted.data, "test")
+    if args.dataset_lights:
+        sets = dataset_sets(scene, device)
+    else:
+        views = views_from_transforms(args.cameras) if scene is None else Views(scene.cameras, scene.indices)
+        sets = [_file_set(args, env, scene, views, env_name(args.envmap, args.rotate, args.exposure))]
 
     # ---- the albedo scale
     model = fitted.model
@@ -126,56 +159,71 @@ def run(args: argparse.Namespace) -> int:
     material = scaled_material(material, scale)
     stated = [float(s) for s in (np.ones(3) if scale is None else scale)]
 
-    # ---- render every view
+    # ---- render every view of every set, score where there is ground truth
     settings = PathSettings(max_bounces=args.max_bounces, ray_offset=fitted.config.ray_offset)
     out_root = args.out or args.run / "relight"
     g = torch.Generator(device=device).manual_seed(args.seed)
-    cams = views.cameras
+    every = []
+    for rs in sets:
+        scores = _render_set(rs, geometry, material, settings, g, out_root, args, stated, source)
+        every += scores
+        if scores:
+            entry = metrics_entry(scores, albedo_scale=stated, albedo_scale_source=source, spp=args.spp,
+                                  max_bounces=args.max_bounces, envmap=rs.envmap,
+                                  protocol=f"{PROTOCOL}; {ORB_PROTOCOL}")
+            merge_metrics(out_root / "metrics.json", rs.name, entry)
+            print(f"nefii relight: {rs.name}: PSNR {_fmt(entry['psnr'], 2)} dB, SSIM {_fmt(entry['ssim'], 4)}, "
+                  f"PSNR-H {_fmt(entry['psnr_h'], 2)} dB, PSNR-L {_fmt(entry['psnr_l'], 2)} dB over {len(scores)} "
+                  f"views -> {out_root / 'metrics.json'}")
+        print(f"nefii relight: {len(rs.views.cameras)} views in {out_root / rs.name}")
+    if args.dataset_lights and every:
+        summary = metrics_entry(every, sets=[rs.name for rs in sets], format=scene.format, albedo_scale=stated,
+                                albedo_scale_source=source, spp=args.spp, max_bounces=args.max_bounces,
+                                protocol=f"means over every view of every set; {PROTOCOL}; {ORB_PROTOCOL}")
+        summary.pop("views")
+        summary["view_count"] = len(every)
+        merge_metrics(out_root / "metrics.json", DATASET_LIGHTS, summary)
+        print(f"nefii relight: all {len(every)} views: PSNR-H {_fmt(summary['psnr_h'], 2)} dB, "
+              f"PSNR-L {_fmt(summary['psnr_l'], 2)} dB")
+    print(f"nefii relight: albedo scale {np.round(stated, 4).tolist()} ({source})")
+    return 0
+
+
+DATASET_LIGHTS = "dataset_lights"
+"""the ``metrics.json`` entry of ``--dataset-lights``: means over all its views"""
+
+
+def _render_set(rs: RelightSet, geometry, material, settings: PathSettings, g: torch.Generator, out_root: Path,
+                args: argparse.Namespace, stated: list[float], source: str) -> list[dict]:
+    """Render ``rs`` into ``out_root / rs.name`` (atomically); the per-view scores where it has ground truth."""
+    cams = rs.views.cameras
     scores = []
-    with atomic_dir(out_root / name) as out:
-        for v in tqdm(range(len(cams)), desc=f"relight {name}", unit="view", disable=args.quiet):
-            img = render_relit(geometry, material, env, cams.c2w[v], cams.K[v], cams.height, cams.width,
+    with atomic_dir(out_root / rs.name) as out:
+        for v in tqdm(range(len(cams)), desc=f"relight {rs.name}", unit="view", disable=args.quiet):
+            img = render_relit(geometry, material, rs.light(v), cams.c2w[v], cams.K[v], cams.height, cams.width,
                                args.spp, g, settings)
-            k = views.indices[v]
+            k = rs.views.indices[v]
             rgb = img.rgb.cpu().numpy()
             alpha = img.coverage.cpu().numpy()[..., None]
             write_exr(out / f"{k}.exr", np.concatenate([img.premultiplied.cpu().numpy(), alpha], -1))
             write_png(out / f"{k}.png", np.concatenate([tone_map(rgb), alpha], -1))
-            if gt is not None:
-                truth = gt.images[v].numpy()
-                mask = _mask(scene, v, alpha[..., 0])
+            if rs.truth is not None:
+                truth = rs.truth[v].numpy()
+                mask = rs.masks[v].numpy() if rs.masks is not None else alpha[..., 0] > 0.5
                 p, s = score_view(rgb, truth, mask)
-                scores.append({"index": k, "psnr": p, "ssim": s})
+                scores.append({"index": k, "psnr": p, "ssim": s, **relight_scores(rgb, truth, mask)})
                 write_grid(out / f"{k}_grid.png", [(truth, rgb)], [True])
-        info = {"envmap": str(args.envmap), "rotate_deg": args.rotate, "exposure_ev": args.exposure,
+        info = {"envmap": rs.envmap, "rotate_deg": args.rotate, "exposure_ev": args.exposure,
                 "spp": args.spp, "max_bounces": args.max_bounces, "rr_depth": settings.rr_depth,
                 "seed": args.seed, "views": len(cams), "albedo_scale": stated, "albedo_scale_source": source,
                 "images": "K.exr linear RGBA premultiplied (A = coverage); K.png sRGB, highlights rolled off "
                           "above linear 0.8, straight alpha"}
         write_text_atomic(out / "render.json", json.dumps(info, indent=2) + "\n")
-
-    print(f"nefii relight: albedo scale {np.round(stated, 4).tolist()} ({source})")
-    if scores:
-        entry = metrics_entry(scores, albedo_scale=stated, albedo_scale_source=source, spp=args.spp,
-                              max_bounces=args.max_bounces, envmap=str(args.envmap), protocol=PROTOCOL)
-        merge_metrics(out_root / "metrics.json", name, entry)
-        print(f"nefii relight: {name}: PSNR {_fmt(entry['psnr'], 2)} dB, SSIM {_fmt(entry['ssim'], 4)} "
-              f"over {len(scores)} views -> {out_root / 'metrics.json'}")
-    print(f"nefii relight: {len(cams)} views in {out_root / name}")
-    return 0
+    return scores
 
 
 def _fmt(x: float | None, digits: int) -> str:
     return "n/a" if x is None else f"{x:.{digits}f}"
-
-
-def _mask(scene, v: int, coverage: np.ndarray) -> np.ndarray:
-    gt = scene.ground_truth
-    if gt is not None and gt.mask is not None:
-        return gt.mask[v].numpy()
-    if scene.masks is not None:
-        return scene.masks[v].numpy()
-    return coverage > 0.5
 
 
 def _check_same_map(gt: Relit | None, image: torch.Tensor) -> None:

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..errors import InputError
-from . import colmap, nerf, nerfstudio, neus, physg, synthetic4relight
+from . import colmap, nerf, nerfstudio, neus, physg, stanford_orb, synthetic4relight
 from .scene import SceneData
 
 SPLITS = ("train", "test")
@@ -33,6 +33,8 @@ FORMATS: dict[str, Format] = {f.name: f for f in (
     # Synthetic4Relight before nerf: both have transforms_{split}.json, only it has K_rgb.exr etc.
     Format(synthetic4relight.NAME, synthetic4relight.DESCRIPTION, synthetic4relight.detect,
            synthetic4relight.read, True),
+    # Stanford-ORB before nerf: both have transforms_{split}.json, only it has {split}_mask/
+    Format(stanford_orb.NAME, stanford_orb.DESCRIPTION, stanford_orb.detect, stanford_orb.read, True),
     Format(nerf.NAME, nerf.DESCRIPTION, nerf.detect, nerf.read, True),
     # nerfstudio after nerf: a folder with transforms_{split}.json is read by it even beside a transforms.json
     Format(nerfstudio.NAME, nerfstudio.DESCRIPTION, nerfstudio.detect, nerfstudio.read, True),
@@ -75,7 +77,7 @@ def load_scene(path: str | Path, split: str = "train", *, format: str | None = N
     """Read one split of the scene at ``path`` into :class:`SceneData`.
 
     ``format`` names a reader (a key of :data:`FORMATS`) instead of detecting it. ``options`` go
-    to the reader: ``prefer`` (nerf: suffix order for images).
+    to the reader: ``prefer`` (nerf, stanford_orb: suffix order for images).
     Every problem with the files is an :class:`InputError` naming the file.
     """
     root = Path(path)

@@ -16,8 +16,9 @@ point is the image centre (``camera_angle_y``, if given, sets ``fy``).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -26,7 +27,7 @@ from ..errors import InputError
 from .files import IMAGE_SUFFIXES, matrix, read_data_map, read_image, read_json, resolve_image
 from .scene import GroundTruth, Relit, SceneData
 from .validate import check_c2w, check_K, check_size
-from .assemble import View, make_scene, read_views
+from .assemble import View, ViewStack, make_scene, read_views
 
 NAME = "nerf"
 DESCRIPTION = "transforms_{split}.json with {split}/ images (nefii layout, NeRF-synthetic)"
@@ -110,6 +111,48 @@ def _stem(image: Path) -> Path:
     return image.with_suffix("")
 
 
+def mask_beside(image: Path) -> Path | None:
+    """nefii's optional ``r_K_mask.png`` beside ``r_K.exr``, if it is there."""
+    mask = _stem(image).with_name(_stem(image).name + "_mask.png")
+    return mask if mask.is_file() else None
+
+
+@dataclass(frozen=True)
+class Frames:
+    """The views a NeRF-style frame list names, read and checked."""
+
+    views: list[View]
+    stack: ViewStack
+    K: list[np.ndarray]
+    """``(3, 3)`` per view"""
+    c2w: list[np.ndarray]
+    """``(4, 4)`` OpenCV camera-to-world per view"""
+
+
+def read_frames(path: Path, meta: dict[str, Any], frames: Sequence[dict[str, Any]], folders: Sequence[Path],
+                mask_of: Callable[[Path], Path | None], prefer: tuple[str, ...] = IMAGE_SUFFIXES,
+                numbers: Sequence[int] | None = None) -> Frames:
+    """Read the frames of ``path`` (a transforms json whose top level is ``meta``): each frame's pose, its image
+    ``folder / file_path`` (suffix resolved in ``prefer`` order), the mask file ``mask_of(image)`` names
+    (``None``: none), and ``K`` from the frame's keys or the top level's. ``numbers``: the frames' positions
+    in the file, for messages (default ``0..N-1``)."""
+    numbers = range(len(frames)) if numbers is None else numbers
+    where = [f"frame {i} ({f['file_path']})" for i, f in zip(numbers, frames)]
+    poses = [gl_pose(f, path, wh) for f, wh in zip(frames, where)]
+    views = []
+    for f, folder in zip(frames, folders):
+        image = resolve_image(folder / f["file_path"], prefer)
+        views.append(View(image=image, mask=mask_of(image)))
+    stack = read_views(views)
+    h, w = stack.images.shape[1:3]
+    if "w" in meta or "h" in meta:
+        jw, jh = meta.get("w", w), meta.get("h", h)
+        if (jw, jh) != (w, h):
+            raise InputError(views[0].image, f"image is {w}x{h} but {path.name} gives w={jw}, h={jh}")
+    Ks = [intrinsics(meta, f, w, h, path, wh) for f, wh in zip(frames, where)]
+    return Frames(views, stack, Ks, poses)
+
+
 def _ground_truth(stems: list[Path], size: tuple[int, int], masks: np.ndarray | None,
                   mask_files: bool) -> GroundTruth | None:
     maps: dict[str, torch.Tensor] = {}
@@ -154,26 +197,15 @@ def read(root: Path, split: str, *, prefer: tuple[str, ...] = IMAGE_SUFFIXES) ->
     path = root / f"transforms_{split}.json"
     meta = read_json(path)
     frames = frames_of(meta, path)
-    views, poses = [], []
-    for i, f in enumerate(frames):
-        where = f"frame {i} ({f['file_path']})"
-        poses.append(gl_pose(f, path, where))
-        image = resolve_image(root / f["file_path"], prefer)
-        mask = _stem(image).with_name(_stem(image).name + "_mask.png")
-        views.append(View(image=image, mask=mask if mask.is_file() else None))
-    stack = read_views(views)
+    got = read_frames(path, meta, frames, [root] * len(frames), mask_beside, prefer)
+    views, stack = got.views, got.stack
     h, w = stack.images.shape[1:3]
-    if "w" in meta or "h" in meta:
-        jw, jh = meta.get("w", w), meta.get("h", h)
-        if (jw, jh) != (w, h):
-            raise InputError(views[0].image, f"image is {w}x{h} but {path.name} gives w={jw}, h={jh}")
-    Ks = [intrinsics(meta, f, w, h, path, f"frame {i} ({f['file_path']})") for i, f in enumerate(frames)]
     stems = [_stem(v.image) for v in views]
     mask_files = all(v.mask is not None for v in views)
     envmap_file = root / "envmap.exr"
     mesh = root / "mesh.ply"
     return make_scene(
-        root=root, split=split, fmt=NAME, views=views, stack=stack, K=Ks, c2w=poses,
+        root=root, split=split, fmt=NAME, views=views, stack=stack, K=got.K, c2w=got.c2w,
         ground_truth=_ground_truth(stems, (h, w), stack.masks, mask_files),
         mesh_path=mesh if mesh.is_file() else None,
         envmap=read_data_map(envmap_file, 3) if envmap_file.is_file() else None,

@@ -92,14 +92,61 @@ class GroundTruth:
 
 @dataclass(frozen=True)
 class Relit:
-    """The same views rendered under another environment (nefii layout ``relight/<name>/``)."""
+    """Views of the object under another, known environment. Two kinds:
+
+    * the split's own views relit (nefii layout ``relight/<name>/``): ``images`` only, one ``envmap``;
+      ``cameras``, ``masks``, ``indices`` and ``view_envmaps`` are ``None``;
+    * other photographs at their own poses, each under its own measured map (Stanford-ORB
+      ``transforms_novel.json``): ``cameras`` and ``indices`` set (``masks`` where the dataset has them),
+      one map per view in ``view_envmaps``, ``envmap`` ``None``.
+    """
 
     name: str
-    """environment name, the folder name under ``relight/``"""
+    """the environment's name: the folder under ``relight/`` (nefii), the capture scene (Stanford-ORB)"""
     images: Float[Tensor, "N H W 3"]
     """linear straight colour"""
     envmap: Float[Tensor, "He We 3"] | None
-    """that environment, equirectangular in nefii's mapping (``nefii.render.equirect``)"""
+    """the one environment of every view, equirectangular in nefii's mapping (``nefii.render.equirect``);
+    ``None`` when the dataset has no file for it or each view has its own (``view_envmaps``)"""
+    view_envmaps: Float[Tensor, "N He We 3"] | None = None
+    """each view's own environment, in the world frame and nefii's mapping (Stanford-ORB: the light probe
+    taken with each photograph)"""
+    cameras: Cameras | None = None
+    """these views' own cameras; ``None``: the split's"""
+    masks: Bool[Tensor, "N H W"] | None = None
+    """these views' object masks; ``None``: the split's (only with the split's own cameras), or none"""
+    indices: tuple[int, ...] | None = None
+    """these views' frame indices (outputs are named by them); ``None``: the split's"""
+
+    def __post_init__(self) -> None:
+        n = self.images.shape[0]
+        _expect(self.images.ndim == 4 and self.images.shape[-1] == 3,
+                f"relit '{self.name}' images must be (N, H, W, 3), got {tuple(self.images.shape)}")
+        if self.cameras is None:
+            _expect(self.masks is None and self.indices is None,
+                    f"relit '{self.name}': masks and indices come with the views' own cameras")
+        else:
+            h, w = self.images.shape[1:3]
+            _expect(len(self.cameras) == n and (self.cameras.height, self.cameras.width) == (h, w),
+                    f"relit '{self.name}': {len(self.cameras)} cameras of {self.cameras.width}x"
+                    f"{self.cameras.height} for {n} images of {w}x{h}")
+            _expect(self.indices is not None and len(self.indices) == n,
+                    f"relit '{self.name}': its own cameras need one index per view")
+            if self.masks is not None:
+                _expect(self.masks.shape == (n, h, w) and self.masks.dtype == torch.bool,
+                        f"relit '{self.name}' masks must be bool ({n}, {h}, {w}), got {self.masks.dtype} "
+                        f"{tuple(self.masks.shape)}")
+        if self.view_envmaps is not None:
+            _expect(self.view_envmaps.ndim == 4 and self.view_envmaps.shape[0] == n
+                    and self.view_envmaps.shape[-1] == 3,
+                    f"relit '{self.name}' view_envmaps must be ({n}, He, We, 3), got {tuple(self.view_envmaps.shape)}")
+
+    def __len__(self) -> int:
+        return self.images.shape[0]
+
+    def environment(self, v: int) -> Float[Tensor, "He We 3"] | None:
+        """The map that lights view ``v``: its own, else the shared one (``None`` if neither)."""
+        return self.view_envmaps[v] if self.view_envmaps is not None else self.envmap
 
     def to(self, device: torch.device | str) -> "Relit":
         return _to(self, device)
@@ -135,7 +182,8 @@ class SceneData:
     envmap: Float[Tensor, "He We 3"] | None = None
     """the lighting of ``images``, equirectangular in nefii's mapping, linear"""
     relit: tuple[Relit, ...] = ()
-    """the same views under other environments (nefii layout, test split)"""
+    """views under other, known environments (test split): these views relit (nefii layout), or other
+    photographs at their own poses (Stanford-ORB); see :class:`Relit`"""
     background_visible: bool = True
     """whether non-object pixels show the environment (photos, or renders with the sky); ``False`` when
     the background is transparent (masks from alpha, e.g. RGBA renders): those pixels observe nothing"""
@@ -167,7 +215,7 @@ class SceneData:
                 _expect(tuple(shape[:3]) == (n, h, w),
                         f"ground truth {kind} has shape {tuple(shape)}, views are ({n}, {h}, {w})")
         for r in self.relit:
-            _expect(r.images.shape == imgs.shape,
+            _expect(r.cameras is not None or r.images.shape == imgs.shape,
                     f"relit '{r.name}' images {tuple(r.images.shape)} != {tuple(imgs.shape)}")
 
     def __len__(self) -> int:

@@ -5,6 +5,7 @@ bsdf                   the BRDF's evaluation and its one-direction cosine + GGX 
 pathtracer             the path tracer: emitter and BSDF sampling with MIS, Russian roulette
 pathtracer_reference   its simple sibling (cosine sampling only), for tests
 render                 a camera view: jittered paths per pixel, chunked
-views                  the cameras to render (test split or a transforms.json)
-report                 albedo scale, PSNR/SSIM, metrics.json, the PNG tone curve
+cameras                the cameras to render (test split or a transforms.json)
+sets                   what one output folder holds: views, each view's light, the truth to score against
+scoring                albedo scale, PSNR/SSIM, metrics.json, the PNG tone curve
 """

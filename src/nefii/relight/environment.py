@@ -85,12 +85,23 @@ def load_environment(path: str | Path, rotate: float = 0.0, exposure: float = 0.
     """Read ``path`` (.exr or .hdr), scale by ``2^exposure``, turn by ``rotate`` degrees about +Z."""
     if not (math.isfinite(rotate) and math.isfinite(exposure)):
         raise InputError(None, f"--rotate {rotate} / --exposure {exposure}: must be finite numbers")
-    img = torch.from_numpy(read_envmap(path)).to(device=device, dtype=dtype) * (2.0 ** exposure)
+    return environment_from_radiance(torch.from_numpy(read_envmap(path)), path, rotate, exposure, device, dtype)
+
+
+def environment_from_radiance(image: Float[torch.Tensor, "H W 3"], source: str | Path, rotate: float = 0.0,
+                              exposure: float = 0.0, device: torch.device | str = "cpu",
+                              dtype: torch.dtype = torch.float32) -> Environment:
+    """A map already in memory (a file's, or a dataset's ``Relit`` map) as light: negative radiance set to 0,
+    scaled by ``2^exposure``, turned by ``rotate`` degrees about +Z; ``source`` names it in errors (black
+    everywhere, overflow)."""
+    img = image.to(device=device, dtype=dtype).clamp_min(0.0) * (2.0 ** exposure)
     if not bool(torch.isfinite(img).all()):
-        raise InputError(path, f"--exposure {exposure:g} makes the radiance overflow {dtype}")
+        raise InputError(source, f"--exposure {exposure:g} makes the radiance overflow {dtype}")
+    if not bool((img > 0).any()):
+        raise InputError(source, "black everywhere: nothing to light with")
     total = float(img.double().sum())
     if total > MAX_TOTAL_RADIANCE:
         ev = math.ceil(math.log2(total / MAX_TOTAL_RADIANCE))
-        raise InputError(path, f"radiance summing to {total:.3g} overflows the path tracer's float arithmetic "
-                               f"(at most {MAX_TOTAL_RADIANCE:g}); scale it down, e.g. --exposure {exposure - ev:g}")
+        raise InputError(source, f"radiance summing to {total:.3g} overflows the path tracer's float arithmetic "
+                                 f"(at most {MAX_TOTAL_RADIANCE:g}); scale it down, e.g. --exposure {exposure - ev:g}")
     return Environment.from_image(img, rotate)

@@ -1,5 +1,6 @@
-"""What ``nefii relight`` states and scores: the albedo scale, PSNR/SSIM against relit ground truth,
-``metrics.json`` (one entry per environment, merged), and the tone curve of its PNGs.
+"""What ``nefii relight`` states and scores: the albedo scale, PSNR/SSIM (and Stanford-ORB's PSNR-H/L,
+:mod:`nefii.evaluate.stanford_orb`) against relit ground truth, ``metrics.json`` (one entry per output
+folder, merged), and the tone curve of its PNGs.
 
 Albedo from images is known only up to a scale per channel shared with the light (Table 1 aligns
 it before scoring). Relighting with a new, known environment inherits that scale, so the scale
@@ -25,8 +26,8 @@ from ..io.images import linear_to_srgb
 from ..render.brdf import Material
 from .pathtracer import MaterialFn
 
-PROTOCOL = ("object pixels of the ground-truth mask, straight colour, sRGB-encoded after clipping to [0, 1]; "
-            "'psnr' and 'ssim' are the means over views")
+PROTOCOL = ("'psnr' and 'ssim': object pixels of the ground-truth mask, straight colour, sRGB-encoded after "
+            "clipping to [0, 1]; every score of an entry is the mean over its views")
 TONE_KNEE = 0.8
 """the PNG tone curve is the identity below this linear value and rolls off smoothly to 1 above it"""
 
@@ -99,14 +100,20 @@ def _finite_or_none(x: float) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
+SCORES = ("psnr", "ssim", "psnr_h", "psnr_l")
+"""the per-view scores an entry averages (where its views have them)"""
+
+
 def metrics_entry(views: list[dict], **stated) -> dict:
-    """``{"psnr", "ssim" (means over views), "views": [...], **stated}`` with NaN/inf as null."""
+    """``{"psnr", "ssim", "psnr_h", "psnr_l" (means over views, those the views have), "views": [...],
+    **stated}`` with NaN/inf as null."""
     def mean(key: str) -> float | None:
-        vals = [v[key] for v in views if v[key] is not None and math.isfinite(v[key])]
+        vals = [v[key] for v in views if v.get(key) is not None and math.isfinite(v[key])]
         return float(np.mean(vals)) if vals else None
 
     clean = [{k: (_finite_or_none(x) if isinstance(x, float) else x) for k, x in v.items()} for v in views]
-    return {"psnr": mean("psnr"), "ssim": mean("ssim"), "views": clean, **stated}
+    means = {key: mean(key) for key in SCORES if any(key in v for v in views)}
+    return {**means, "views": clean, **stated}
 
 
 def merge_metrics(path: Path, env: str, entry: dict) -> dict:
