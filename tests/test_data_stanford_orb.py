@@ -129,25 +129,12 @@ def _edit_novel(root, edit):
     return path
 
 
-def test_novel_frame_without_scene_name(tmp_path):
+@pytest.mark.parametrize("frame, key", [(1, "scene_name"), (3, "transform_matrix"), (2, "camera_angle_x")])
+def test_novel_frame_without_a_field(tmp_path, frame, key):
     root = orb(tmp_path)
-    path = _edit_novel(root, lambda m: m["frames"][1].pop("scene_name"))
+    path = _edit_novel(root, lambda m: m["frames"][frame].pop(key))
     e = load_error(root, "test")
-    assert e.path == str(path) and "frame 1" in e.problem and "scene_name" in e.problem
-
-
-def test_novel_frame_without_a_pose(tmp_path):
-    root = orb(tmp_path)
-    path = _edit_novel(root, lambda m: m["frames"][3].pop("transform_matrix"))
-    e = load_error(root, "test")
-    assert e.path == str(path) and "frame 3" in e.problem and "transform_matrix" in e.problem
-
-
-def test_novel_frame_without_a_field_of_view(tmp_path):
-    root = orb(tmp_path)
-    path = _edit_novel(root, lambda m: m["frames"][2].pop("camera_angle_x"))
-    e = load_error(root, "test")
-    assert e.path == str(path) and "frame 2" in e.problem and "camera_angle_x" in e.problem
+    assert e.path == str(path) and f"frame {frame}" in e.problem and key in e.problem
 
 
 def test_novel_capture_folder_missing(tmp_path):

@@ -26,7 +26,7 @@ import numpy as np
 from ..errors import InputError
 from .files import IMAGE_SUFFIXES
 from .scene import SceneData
-from .undistort import COEFFS, Lens, undistort_cached
+from .undistort import COEFFS, Lens, pinhole_views
 from .validate import check_c2w, check_K
 from .assemble import View, make_scene, read_views
 
@@ -138,12 +138,7 @@ def read(root: Path, split: str) -> SceneData:
         views.append(View(image=image, mask=mask))
 
     # ---- undistort every distorted view (every read of this model shares the cache)
-    sources, Ks = list(views), [lens.K for lens in lenses]
-    distorted = [i for i, lens in enumerate(lenses) if lens.distorted]
-    if distorted:
-        done = undistort_cached(root, cameras_file, [(views[i], lenses[i]) for i in distorted])
-        for i, (view, K) in zip(distorted, done):
-            sources[i], Ks[i] = view, K
+    sources, Ks = pinhole_views(root, cameras_file, views, lenses)
 
     stack = read_views(sources)
     h, w = stack.images.shape[1:3]

@@ -35,7 +35,7 @@ from ..errors import InputError
 from .files import IMAGE_SUFFIXES, read_json
 from .nerf import frame_number, frames_of, gl_pose, intrinsics
 from .scene import SceneData
-from .undistort import COEFFS, Lens, check_lens_size, undistort_cached
+from .undistort import COEFFS, Lens, check_lens_size, pinhole_views
 from .assemble import View, make_scene, read_views
 
 NAME = "nerfstudio"
@@ -146,12 +146,7 @@ def read(root: Path, split: str) -> SceneData:
         raise InputError(path, f"frame {i} ({frames[i]['file_path']}) has no 'mask_path' while other frames do")
 
     # ---- undistort every distorted frame of the file (both splits share the cache)
-    sources, Ks = list(views), [lens.K for lens in lenses]
-    distorted = [i for i, lens in enumerate(lenses) if lens.distorted]
-    if distorted:
-        done = undistort_cached(root, path, [(views[i], lenses[i]) for i in distorted])
-        for i, (view, K) in zip(distorted, done):
-            sources[i], Ks[i] = view, K
+    sources, Ks = pinhole_views(root, path, views, lenses)
 
     stack = read_views([sources[i] for i in chosen])
     for i in chosen:

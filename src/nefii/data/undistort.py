@@ -178,6 +178,19 @@ def _reuse(folder: Path, key: str, n: int) -> list[tuple[View, np.ndarray]] | No
         return None
 
 
+def pinhole_views(root: Path, key_file: Path, views: Sequence[View], lenses: Sequence[Lens]
+                  ) -> tuple[list[View], list[np.ndarray]]:
+    """Each view as a pinhole image and its ``K``: distorted ones from the cache (:func:`undistort_cached`,
+    keyed by ``key_file``), the others as they are."""
+    sources, Ks = list(views), [lens.K for lens in lenses]
+    distorted = [i for i, lens in enumerate(lenses) if lens.distorted]
+    if distorted:
+        done = undistort_cached(root, key_file, [(views[i], lenses[i]) for i in distorted])
+        for i, (view, K) in zip(distorted, done):
+            sources[i], Ks[i] = view, K
+    return sources, Ks
+
+
 def undistort_cached(root: Path, json_path: Path, items: Sequence[tuple[View, Lens]]) -> list[tuple[View, np.ndarray]]:
     """Each ``(view, lens)`` as an undistorted view in ``root/nefii_undistorted`` and its pinhole ``K``.
 
