@@ -4,10 +4,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from jaxtyping import Float, Int
+from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
-from ..camera import pixel_rays
+from ..camera import jittered_pixel_rays, pixel_rays
 from ..data.scene import SceneData
 from ..errors import InputError
 from ..raycast.base import Geometry, Rays
@@ -46,18 +46,42 @@ def view_rays(scene: SceneData, view: int) -> tuple[Float[Tensor, "H W 3"], Floa
     return o.float(), d.float()
 
 
+FOOTPRINT = ((0.05, 0.05), (0.95, 0.05), (0.05, 0.95), (0.95, 0.95))
+"""where in a pixel (fractions of its width and height) its footprint is probed besides the centre"""
+
+
+def footprint_hits(scene: SceneData, geometry: Geometry, view: int) -> Bool[Tensor, "K HW"]:
+    """Whether rays near each corner of every pixel of ``view`` hit the geometry (one row per corner of
+    :data:`FOOTPRINT`)."""
+    n = scene.height * scene.width
+    pixel = torch.arange(n)
+    rows = []
+    for u in FOOTPRINT:
+        o, d = jittered_pixel_rays(scene.cameras.c2w[view], scene.cameras.K[view], scene.width, pixel,
+                                   torch.tensor(u, dtype=torch.float64).expand(n, 2))
+        rows.append(geometry.intersect(Rays(o.float(), d.float())).valid)
+    return torch.stack(rows)
+
+
 def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
     """Cast every pixel once. Object pixels: the ray hits the mesh (and the mask, if any, says object).
     Background pixels: no hit (and the mask, if any, says background), and only where the background
-    is visible at all (not for transparent RGBA renders). Pixels where mask and geometry disagree
-    (silhouette errors, anti-aliased edges) are left out of both, and so are clipped pixels (their true
-    colour is unknown: fitting them as if the scene were that bright would darken a sun's highlight)."""
+    is visible at all (not for transparent RGBA renders). Left out of both: where the background is visible,
+    pixels whose footprint the geometry's silhouette crosses (rays near its corners disagree with its centre:
+    the colour mixes object and background, and fitting it as either puts the other's colour into the
+    material or the light; a transparent render's edge pixels hold the object's colour alone, and stay),
+    pixels where mask and geometry disagree (silhouette errors, anti-aliased edges), and clipped pixels
+    (their true colour is unknown: fitting them as if the scene were that bright would darken a sun's
+    highlight)."""
     pts, rgb, bg_d, bg_c, views, bg_views = [], [], [], [], [], []
     for v in range(len(scene)):
         o, d = view_rays(scene, v)
         hit = geometry.intersect(Rays(o.reshape(-1, 3), d.reshape(-1, 3)))
         colour = scene.images[v].reshape(-1, 3)
         obj, bg = hit.valid, ~hit.valid & scene.background_visible
+        if scene.background_visible:  # a pixel the silhouette crosses mixes object and background colour
+            corners = footprint_hits(scene, geometry, v)
+            obj, bg = obj & corners.all(0), bg & ~corners.any(0)
         if scene.masks is not None:
             m = scene.masks[v].reshape(-1)
             obj, bg = obj & m, bg & ~m
