@@ -9,6 +9,8 @@ from PIL import Image
 
 from fit_fixtures import write_rendered_scene
 from nefii.data import load_scene
+from nefii.data.downscale import downscaled
+from nefii.errors import InputError
 from nefii.synth.photo import PhotoSettings, distort, distortion_maps, make_photos, photo_K
 
 pytest.importorskip("cv2")
@@ -75,3 +77,21 @@ def test_make_photos_writes_a_capture_the_nerfstudio_reader_takes(tmp_path):
         assert im.format == "JPEG" and im.mode == "RGB"
     assert [v["clean"] for v in record["views"]] == ["train/r_0.exr", "train/r_1.exr", "train/r_2.exr",
                                                       "train/r_3.exr", "test/r_0.exr", "test/r_1.exr"]
+
+
+def test_photos_from_a_finer_render_are_at_its_resolution_and_average_down(tmp_path):
+    clean = write_rendered_scene(tmp_path / "clean", res=16, n_train=3, n_test=1)
+    fine = write_rendered_scene(tmp_path / "fine", res=32, n_train=3, n_test=1)
+    out = make_photos(clean, tmp_path / "photo", PhotoSettings(seed=1), render=fine)
+    with Image.open(out / "images" / "frame_00001.jpg") as im:
+        assert im.size == (32, 32)
+    scene, factor = downscaled(load_scene(out, "train"), 16)
+    assert factor == 2 and (scene.width, scene.height) == (16, 16)
+
+
+def test_a_render_of_other_views_is_refused(tmp_path):
+    clean = write_rendered_scene(tmp_path / "clean", res=16, n_train=3, n_test=1)
+    other = write_rendered_scene(tmp_path / "other", res=32, n_train=2, n_test=1)
+    with pytest.raises(InputError, match="integer multiple"):
+        make_photos(clean, tmp_path / "photo", PhotoSettings(), render=other)
+    assert not (tmp_path / "photo").exists()

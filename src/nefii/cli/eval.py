@@ -8,6 +8,7 @@ import torch
 from tqdm import tqdm
 
 from ..data import load_scene
+from ..data.downscale import downscaled
 from ..evaluate.run import evaluate_run
 from ..fit.outputs import load_run
 from .common import add_threads_flag, pick_device, render_flags, set_threads
@@ -31,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     device = pick_device(args.device)
     fitted = load_run(args.run, device)
     set_threads(fitted.config.threads if args.threads is None else args.threads)
-    scene = load_scene(args.data or fitted.data, "test")
+    scene = downscaled(load_scene(args.data or fitted.data, "test"), fitted.config.max_image_side)[0]
     g = torch.Generator(device=device).manual_seed(args.seed)
     evaluate_run(fitted, scene, args.run / "eval", args.spp, g,
                  progress=lambda it: tqdm(it, desc="eval", unit="view", disable=args.quiet))

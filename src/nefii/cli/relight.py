@@ -27,6 +27,7 @@ import torch
 from tqdm import tqdm
 
 from ..data import load_scene
+from ..data.downscale import downscaled
 from ..data.scene import Relit
 from ..errors import InputError
 from ..evaluate.outputs import write_grid
@@ -134,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     # ---- what to render: the views, the light of each, the truth to score against
     scene = None
     if args.cameras is None:
-        scene = load_scene(args.data or fitted.data, "test")
+        scene = downscaled(load_scene(args.data or fitted.data, "test"), fitted.config.max_image_side)[0]
     if args.dataset_lights:
         sets = dataset_sets(scene, device)
     else:

@@ -10,6 +10,8 @@ installed Mitsuba runs its fast ``llvm_ad_rgb`` variant.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import tempfile
 import time
 from pathlib import Path
 
@@ -34,6 +36,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "(8-bit JPEG, clipped highlights, per-view exposure and white balance, lens distortion, "
                         "noise, no masks; nerfstudio transforms.json). Score a fit of OUT/photo with "
                         "`nefii eval RUN --data OUT/clean`")
+    p.add_argument("--photo-scale", type=int, default=2, metavar="S",
+                   help="--photo: the photos are taken at S times --res (the scene is rendered again at that "
+                        "resolution, ~S^2 times the time), as a camera with more pixels than the fit uses; "
+                        "1 resamples the clean renders (blurrier). Default 2")
     p.set_defaults(func=run)
 
 
@@ -70,6 +76,15 @@ def run(args: argparse.Namespace) -> int:
     if args.photo:
         from ..synth.photo import PhotoSettings, make_photos
 
-        make_photos(clean, out / "photo", PhotoSettings(seed=args.seed))
-        print(f"nefii synth: wrote {out / 'photo'} (the same views as a phone's JPEGs; nerfstudio transforms.json)")
+        if args.photo_scale < 1:
+            raise InputError(None, f"--photo-scale must be 1 or more, got {args.photo_scale}")
+        with tempfile.TemporaryDirectory(dir=out, prefix=".photo_render") as tmp:
+            render = None
+            if args.photo_scale > 1:
+                render = Path(tmp) / "render"
+                synthesize(dataclasses.replace(settings, res=settings.res * args.photo_scale), render)
+            make_photos(clean, out / "photo", PhotoSettings(seed=args.seed), render=render)
+        size = settings.res * args.photo_scale
+        print(f"nefii synth: wrote {out / 'photo'} (the same views as a phone's {size}x{size} JPEGs; nerfstudio "
+              f"transforms.json; a fit averages them down to {settings.res} px with --set max_image_side={settings.res})")
     return 0

@@ -121,8 +121,11 @@ class FitConfig:
     :mod:`nefii.fit.light_prior`)"""
     exposure: Literal["shared", "per_view"] = "shared"
     """``shared``: every view shares one exposure and white balance (renders, a camera on manual); ``per_view``:
-    a learned RGB gain per training view, view 0 the reference (phone photos: auto exposure and white
+    a learned RGB gain per training view, their geometric mean held at 1 (phone photos: auto exposure and white
     balance; :mod:`nefii.fit.exposure`). Eval and relight render without gains"""
+    max_image_side: Annotated[int, Range(0, 1 << 16)] = 512
+    """training images whose larger side exceeds this many pixels are averaged down by the smallest integer
+    factor that fits, intrinsics with them (a phone's 4032 x 3024 photos; :mod:`nefii.data.downscale`); 0: never"""
     secondary_buffer: Annotated[int, Range(1)] = 65536
     """secondary hits kept for the unobserved step"""
     ray_offset: Annotated[float, Range(0, 0.1)] = 1e-4

@@ -91,6 +91,9 @@ class GeometryConfig:
     """seeds parameters, ray batches and samples"""
     checkpoint_every_s: Annotated[float, Range(0)] = 120.0
     """seconds between checkpoints"""
+    max_image_side: Annotated[int, Range(0, 1 << 16)] = 512
+    """training images whose larger side exceeds this many pixels are averaged down by the smallest integer
+    factor that fits, intrinsics with them (:mod:`nefii.data.downscale`); 0: never"""
     threads: Annotated[int, Range(0, 4096)] = 0
     """CPU threads for torch (0: the cores this process may use)"""
 

@@ -123,12 +123,35 @@ def _composited(clean: Path, name: str, envmap: torch.Tensor, c2w: torch.Tensor,
     return rgba[..., :3] + (1.0 - rgba[..., 3:]) * background
 
 
-def make_photos(clean: str | Path, out: str | Path, settings: PhotoSettings = PhotoSettings()) -> Path:
-    """Photograph the clean nefii-layout scene ``clean`` into ``out`` (written whole or not at all)."""
+def _check_same_views(render: dict, clean: dict, where: Path) -> None:
+    """``render``'s splits are ``clean``'s views at an integer multiple of its resolution."""
+    for split, r in render.items():
+        c = clean[split]
+        m = r.width // c.width
+        ok = (len(r) == len(c) and m >= 1 and (r.width, r.height) == (m * c.width, m * c.height)
+              and torch.allclose(r.cameras.c2w, c.cameras.c2w, atol=1e-6)
+              and torch.allclose(r.cameras.K[:, :2], m * c.cameras.K[:, :2], rtol=1e-6))
+        if not ok:
+            raise InputError(where, f"its {split} views are not the clean scene's at an integer multiple of its "
+                                    "resolution (render it with the same scene, views and seed)")
+
+
+def make_photos(clean: str | Path, out: str | Path, settings: PhotoSettings = PhotoSettings(),
+                render: str | Path | None = None) -> Path:
+    """Photograph the clean nefii-layout scene ``clean`` into ``out`` (written whole or not at all).
+
+    ``render``: the same views rendered at an integer multiple of ``clean``'s resolution (same seed); the
+    photos are then taken from it at its resolution, as a camera with more pixels than the fit uses would
+    take them (a fit averages them down, ``max_image_side``), instead of resampled from ``clean``'s own
+    pixels: resampling a render at its own resolution blurs it twice over (distortion here, undistortion
+    when it is read) in a way a camera's pixels do not."""
     from PIL import Image
 
     clean, out = Path(clean).resolve(), Path(out)
-    splits = {s: load_scene(clean, s, format="nerf") for s in ("train", "test")}
+    source = clean if render is None else Path(render).resolve()
+    splits = {s: load_scene(source, s, format="nerf") for s in ("train", "test")}
+    if render is not None:
+        _check_same_views(splits, {s: load_scene(clean, s, format="nerf") for s in ("train", "test")}, source)
     envmap = splits["train"].envmap
     if envmap is None:
         raise InputError(clean / "envmap.exr", "not found: the photo's background needs the scene's environment")
@@ -139,7 +162,7 @@ def make_photos(clean: str | Path, out: str | Path, settings: PhotoSettings = Ph
     linear = {}
     for s, i in views:
         sc = splits[s]
-        linear[s, i] = _composited(clean, sc.names[i], envmap, sc.cameras.c2w[i], sc.cameras.K[i], h, w)
+        linear[s, i] = _composited(source, sc.names[i], envmap, sc.cameras.c2w[i], sc.cameras.K[i], h, w)
     lum = np.concatenate([(linear[v] @ np.array([0.2126, 0.7152, 0.0722]))[splits[v[0]].masks[v[1]].numpy()]
                           for v in views])  # metered on the object, as a phone's auto exposure on its subject
     base = 1.0 / max(float(np.quantile(lum, 1.0 - settings.clip_share)), 1e-6)
