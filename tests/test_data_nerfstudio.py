@@ -316,9 +316,45 @@ BAD = {
                            "transforms.json", ("'EQUIRECTANGULAR'", "not supported")),
     "a coefficient the model lacks": ("PINHOLE", lambda r: edit_json(r, lambda m: m.update(k1=-0.1)),
                                       "transforms.json", ("'k1' is -0.1", "PINHOLE")),
+    "absurd EXIF exposure time": ("OPENCV", lambda r: with_exif(r / "images/frame_00002.png", 0.0),
+                                  "images/frame_00002.png", ("ExposureTime", "absurd")),
+    "EXIF exposures 31.5 stops apart": ("OPENCV", lambda r: [with_exif(r / f"images/frame_0000{k}.png", t, iso)
+                                                           for k, t, iso in ((1, 0.01, 100), (2, 0.01, 100),
+                                                                             (3, 3000.0, 10**6))],
+                                      "images/frame_00003.png", ("span 31.5 stops", "absurd")),
     "listed file is no frame": ("OPENCV", lambda r: edit_json(r, lambda m: m.update(test_filenames=["images/x.png"])),
                                 "transforms.json", ("test_filenames", "images/x.png")),
 }
+
+
+def with_exif(path: Path, seconds: float, iso: int = 100, f_number: float = 1.8) -> None:
+    """Re-save an image with a phone's EXIF exposure fields."""
+    from PIL import ExifTags
+
+    with Image.open(path) as im:
+        im.load()
+        exif = Image.Exif()
+        exif[ExifTags.IFD.Exif] = {ExifTags.Base.ExposureTime: seconds, ExifTags.Base.FNumber: f_number,
+                                   ExifTags.Base.ISOSpeedRatings: iso}
+        im.save(path, exif=exif)
+
+
+def test_exif_exposures_are_read_when_every_photo_has_one(tmp_path):
+    write_capture(tmp_path)
+    assert load_scene(tmp_path).exposure is None
+    times = {1: 1 / 50, 2: 1 / 100, 3: 1 / 400}
+    for k, t in times.items():
+        with_exif(tmp_path / f"images/frame_0000{k}.png", t, iso=200, f_number=2.0)
+    scene = load_scene(tmp_path)
+    want = [times[int(n[-5])] * 200 / 4.0 for n in scene.names]
+    np.testing.assert_allclose(scene.exposure.numpy(), want, rtol=1e-6)
+
+
+def test_exif_on_some_photos_only_is_not_used(tmp_path):
+    write_capture(tmp_path)
+    with_exif(tmp_path / "images/frame_00001.png", 1 / 100)
+    with pytest.warns(UserWarning, match="no EXIF exposure"):
+        assert load_scene(tmp_path).exposure is None
 
 
 @pytest.mark.parametrize("name", BAD)

@@ -30,6 +30,21 @@ def test_view_gains_are_relative_and_start_at_one():
         ViewGains(0)
 
 
+def test_view_gains_start_from_metered_exposures_and_are_pulled_back_there():
+    metered = torch.tensor([1 / 100, 1 / 50, 1 / 200, 1 / 100], dtype=torch.float64)
+    g = ViewGains(4, metered)
+    want = (metered / metered.log().mean().exp()).float()[:, None].expand(4, 3)
+    torch.testing.assert_close(g.all(), want)           # relative to their geometric mean
+    assert float(g.prior().detach()) == 0.0             # the prior's centre is the metered start
+    with torch.no_grad():
+        g.log_gain[2] += 0.3
+    assert float(g.prior().detach()) > 0
+    assert "expected" not in g.state_dict()             # from the data, recomputed on resume
+    for bad in (torch.ones(3), torch.tensor([1.0, 0.0, 1.0, 1.0])):
+        with pytest.raises(ValueError):
+            ViewGains(4, bad)
+
+
 def test_a_view_at_plus_one_ev_gets_a_gain_of_two(tmp_path):
     """Twelve views, one of them one stop brighter: its gain is twice the others' (their median), within 5%
     averaged over the channels and 10% in each (a tiny fit's colour is not exact: where a view sees mostly the

@@ -75,6 +75,8 @@ def test_make_photos_writes_a_capture_the_nerfstudio_reader_takes(tmp_path):
     assert np.all(np.abs(stops) <= 1.0) and stops.std() > 0.1  # a different exposure per view, within +-1 EV
     with Image.open(out / record["views"][0]["file_path"]) as im:
         assert im.format == "JPEG" and im.mode == "RGB"
+    exposure = np.concatenate([train.exposure.numpy(), test.exposure.numpy()])  # the EXIF a phone writes
+    np.testing.assert_allclose(np.log2(exposure / exposure[0]), stops - stops[0], atol=1e-4)
     assert [v["clean"] for v in record["views"]] == ["train/r_0.exr", "train/r_1.exr", "train/r_2.exr",
                                                       "train/r_3.exr", "test/r_0.exr", "test/r_1.exr"]
 

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from .files import read_image, read_mask
+from .files import read_exposure, read_image, read_mask
 from .scene import Cameras, GroundTruth, Relit, SceneData
 from .validate import check_mask, check_size
 
@@ -39,10 +39,40 @@ class ViewStack:
     """the background is transparent (masks from alpha): its pixels show nothing"""
     clipped: np.ndarray | None
     """``(N, H, W)`` bool: pixels saturated in some channel (8/16-bit files); ``None`` when no file can clip"""
+    exposure: np.ndarray | None = None
+    """``(N,)`` each photo's exposure from its EXIF (:func:`read_exposure`); ``None`` unless every view has one"""
 
 
-def read_views(views: Sequence[View]) -> ViewStack:
-    """Read every view's image and mask.
+EXPOSURE_SPAN = 20.0
+"""stops between the brightest and the darkest EXIF exposure beyond which the metadata is taken as wrong"""
+
+
+def read_exposures(views: Sequence[View]) -> np.ndarray | None:
+    """Each view's EXIF exposure when every view has one, else ``None`` (a warning when only some have
+    one). Readers of photographs (nerfstudio, COLMAP) call it on the original files before undistorting
+    them, so bad metadata leaves nothing written. Exposures spanning more than :data:`EXPOSURE_SPAN` stops are an :class:`InputError` naming the
+    view farthest from the median."""
+    found = [read_exposure(v.image) for v in views]
+    have = [e is not None for e in found]
+    if not any(have):
+        return None
+    if not all(have):
+        missing = next(v for v, h in zip(views, have) if not h)
+        warnings.warn(f"{missing.image}: no EXIF exposure, while {sum(have)} of {len(views)} views have one: "
+                      "the exposure metadata is not used", stacklevel=3)
+        return None
+    ev = np.log2(np.array(found, dtype=np.float64))
+    if ev.max() - ev.min() > EXPOSURE_SPAN:
+        worst = int(np.argmax(np.abs(ev - np.median(ev))))
+        raise InputError(views[worst].image, f"EXIF exposure is 2^{ev[worst] - np.median(ev):+.1f} times the views' "
+                                             f"median: the views' exposures span {ev.max() - ev.min():.1f} stops, "
+                                             f"more than {EXPOSURE_SPAN:.0f} (absurd metadata)")
+    return np.array(found, dtype=np.float64)
+
+
+def read_views(views: Sequence[View], exposure: np.ndarray | None = None) -> ViewStack:
+    """Read every view's image and mask; ``exposure``: the photos' EXIF exposures, read by the caller
+    (:func:`read_exposures`) from the original files before anything was made from them.
 
     Masks come from the mask files when views name them (then every view must), else from
     alpha > 0.5 when every image has an alpha channel and some alpha is below 1 (then the
@@ -80,7 +110,7 @@ def read_views(views: Sequence[View]) -> ViewStack:
             check_mask(m, v.image)
             masks.append(m)
     clipped = np.stack(clips) if any(c.any() for c in clips) else None
-    return ViewStack(np.stack(rgbs), None if masks is None else np.stack(masks), transparent, clipped)
+    return ViewStack(np.stack(rgbs), None if masks is None else np.stack(masks), transparent, clipped, exposure)
 
 
 def _warn_suspicious(views: Sequence[View], rgbs: list[np.ndarray], alphas: list[np.ndarray | None]) -> None:
@@ -139,4 +169,5 @@ def make_scene(*, root: Path, split: str, fmt: str, views: Sequence[View], stack
         envmap=None if envmap is None else torch.from_numpy(np.ascontiguousarray(envmap, dtype=np.float32)),
         relit=tuple(relit), background_visible=not stack.transparent,
         clipped=None if stack.clipped is None else torch.from_numpy(stack.clipped),
+        exposure=None if stack.exposure is None else torch.from_numpy(stack.exposure),
     )

@@ -28,7 +28,7 @@ from .files import IMAGE_SUFFIXES
 from .scene import SceneData
 from .undistort import COEFFS, Lens, pinhole_views
 from .validate import check_c2w, check_K
-from .assemble import View, make_scene, read_views
+from .assemble import View, make_scene, read_exposures, read_views
 
 NAME = "colmap"
 DESCRIPTION = "sparse/0/, sparse/ or ./ with cameras.bin|txt + images.bin|txt, and images/ (COLMAP)"
@@ -138,9 +138,10 @@ def read(root: Path, split: str) -> SceneData:
         views.append(View(image=image, mask=mask))
 
     # ---- undistort every distorted view (every read of this model shares the cache)
+    exposure = read_exposures(views)
     sources, Ks = pinhole_views(root, cameras_file, views, lenses)
 
-    stack = read_views(sources)
+    stack = read_views(sources, exposure)
     h, w = stack.images.shape[1:3]
     for v, im in zip(views, registered):
         cam = rec.cameras[im.camera_id]

@@ -63,6 +63,47 @@ def _read_ldr(path: Path) -> tuple[np.ndarray, np.ndarray | None, int]:
     return (arr[..., :3], arr[..., 3], 255) if has_alpha else (arr, None, 255)
 
 
+EXIF_IFD = 0x8769
+EXPOSURE_TIME, F_NUMBER, ISO = 0x829A, 0x829D, 0x8827
+"""EXIF tags: ExposureTime (s), FNumber, ISOSpeedRatings (in the Exif sub-IFD)"""
+
+
+def read_exposure(path: str | Path) -> float | None:
+    """A JPEG/PNG's exposure from its EXIF, as the light it lets through relative to 1 s at f/1, ISO 1:
+    ``t * ISO / N^2`` (a missing ISO or f-number counts as 1: a phone's aperture is fixed); ``None``
+    without an exposure time (EXR, or no EXIF). A value no camera writes (zero, negative, NaN, a time
+    over an hour, an f-number under 0.5, ISO over 10^7) is an :class:`InputError` naming the file."""
+    from PIL import Image as PILImage, UnidentifiedImageError
+
+    path = Path(path)
+    if path.suffix.lower() not in (".jpg", ".jpeg", ".png") or not path.is_file():
+        return None  # a missing file is reported where its pixels are read
+    try:
+        with PILImage.open(path) as im:
+            if im.format == "PNG":
+                im.load()  # a PNG's eXIf chunk may follow its pixels
+            tags = im.getexif().get_ifd(EXIF_IFD)
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+        raise InputError(path, f"not a readable image ({type(e).__name__}: {e})") from None
+    if EXPOSURE_TIME not in tags:
+        return None
+
+    def value(tag: int, name: str, lo: float, hi: float) -> float:
+        raw = tags.get(tag, 1.0)
+        try:
+            v = float(raw[0] if isinstance(raw, (tuple, list)) else raw)
+        except (TypeError, ValueError, ZeroDivisionError):
+            raise InputError(path, f"EXIF {name} is not a number ({raw!r})") from None
+        if not (np.isfinite(v) and lo < v <= hi):
+            raise InputError(path, f"EXIF {name} {v:g} is absurd (expected over {lo:g} and at most {hi:g})")
+        return v
+
+    t = value(EXPOSURE_TIME, "ExposureTime", 0.0, 3600.0)
+    n = value(F_NUMBER, "FNumber", 0.5, 1000.0) if F_NUMBER in tags else 1.0
+    iso = value(ISO, "ISOSpeedRatings", 0.0, 1e7) if ISO in tags else 1.0
+    return t * iso / (n * n)
+
+
 def read_image(path: str | Path) -> Image:
     """An image file -> :class:`Image` (linear straight colour, alpha, clipped pixels).
 

@@ -36,7 +36,7 @@ from .files import IMAGE_SUFFIXES, read_json
 from .nerf import frame_number, frames_of, gl_pose, intrinsics
 from .scene import SceneData
 from .undistort import COEFFS, Lens, check_lens_size, pinhole_views
-from .assemble import View, make_scene, read_views
+from .assemble import View, make_scene, read_exposures, read_views
 
 NAME = "nerfstudio"
 DESCRIPTION = "transforms.json with file_path images (nerfstudio, instant-ngp)"
@@ -146,9 +146,10 @@ def read(root: Path, split: str) -> SceneData:
         raise InputError(path, f"frame {i} ({frames[i]['file_path']}) has no 'mask_path' while other frames do")
 
     # ---- undistort every distorted frame of the file (both splits share the cache)
+    exposure = read_exposures([views[i] for i in chosen])
     sources, Ks = pinhole_views(root, path, views, lenses)
 
-    stack = read_views([sources[i] for i in chosen])
+    stack = read_views([sources[i] for i in chosen], exposure)
     for i in chosen:
         check_lens_size(stack.images.shape[1:3], views[i].image, lenses[i], "image", path)
     return make_scene(root=root, split=split, fmt=NAME,

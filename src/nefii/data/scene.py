@@ -190,6 +190,9 @@ class SceneData:
     clipped: Bool[Tensor, "N H W"] | None = None
     """pixels saturated in some channel of an 8/16-bit file (the scene was at least that bright): left out of
     the fit's photometric loss; ``None`` when no pixel is"""
+    exposure: Float[Tensor, "N"] | None = None
+    """each photo's exposure from its EXIF (``t * ISO / N^2``, float64), when every view has one: where the
+    fit's per-view gains start; ``None`` otherwise"""
 
     def __post_init__(self) -> None:
         imgs = self.images
@@ -208,6 +211,8 @@ class SceneData:
         if self.clipped is not None:
             _expect(self.clipped.shape == (n, h, w) and self.clipped.dtype == torch.bool,
                     f"SceneData.clipped must be bool ({n}, {h}, {w}), got {self.clipped.dtype} {tuple(self.clipped.shape)}")
+        if self.exposure is not None:
+            _expect(self.exposure.shape == (n,), f"SceneData.exposure must be ({n},), got {tuple(self.exposure.shape)}")
         _expect(self.scene_to_source.shape == (4, 4), "SceneData.scene_to_source must be 4x4")
         if self.ground_truth is not None:
             for kind in self.ground_truth.kinds():

@@ -7,7 +7,9 @@ by a brighter sky or albedo. The gains' geometric mean is held at 1 per channel 
 views): without that every gain could double while the light halves. Centring, not fixing one reference
 view, keeps that scale out of the gains altogether: with a reference, the other views' gains share one
 direction that only the reference's pixels constrain, and the fit crawls along it (measured: one view of
-twelve left the other eleven 13% off after 600 steps). A small prior pulls each ``log g_v`` to 0. The
+twelve left the other eleven 13% off after 600 steps). A small prior pulls each ``log g_v`` to where it
+starts: 0, or, when every photo has an EXIF exposure ``e_v`` (``t * ISO / N^2``), ``log e_v`` centred over
+the views (the camera's own record of its exposure; white balance is left to the fit). The
 materials, the light and the cache are those of the views' average exposure; eval and relight render
 without gains.
 """
@@ -18,18 +20,26 @@ from jaxtyping import Float, Int
 from torch import Tensor, nn
 
 GAIN_PRIOR = 1e-3
-"""weight of ``mean(log g)^2``: a tie-breaker where the images say nothing about a gain (a view whose pixels
+"""weight of ``mean((log g - log g_0)^2)``: a tie-breaker where the images say nothing about a gain (a view whose pixels
 are all clipped), far below the colour loss of any view with data"""
 
 
 class ViewGains(nn.Module):
-    """A free ``log g`` per view and channel, centred over the views; starts at gain 1 everywhere."""
+    """A free ``log g`` per view and channel, centred over the views; starts at gain 1 everywhere, or at the
+    views' ``metered`` exposures (EXIF) relative to their geometric mean."""
 
-    def __init__(self, num_views: int) -> None:
+    def __init__(self, num_views: int, metered: Float[Tensor, "V"] | None = None) -> None:
         super().__init__()
         if num_views < 1:
             raise ValueError(f"ViewGains needs at least one view, got {num_views}")
-        self.log_gain = nn.Parameter(torch.zeros(num_views, 3))
+        start = torch.zeros(num_views, 3)
+        if metered is not None:
+            if metered.shape != (num_views,) or not bool((metered > 0).all()):
+                raise ValueError(f"metered exposures must be ({num_views},) and positive, got {tuple(metered.shape)}")
+            log_e = metered.double().log()
+            start = (log_e - log_e.mean()).float()[:, None].expand(num_views, 3).clone()
+        self.register_buffer("expected", start.clone(), persistent=False)   # from the data, not the fit
+        self.log_gain = nn.Parameter(start)
 
     @property
     def num_views(self) -> int:
@@ -48,5 +58,5 @@ class ViewGains(nn.Module):
         return self.all()[view]
 
     def prior(self) -> Tensor:
-        """``GAIN_PRIOR * mean((log g)^2)`` over the views' centred gains."""
-        return GAIN_PRIOR * self.centred().square().mean()
+        """``GAIN_PRIOR * mean((log g - log g_0)^2)`` over the views' centred gains, ``g_0`` where they started."""
+        return GAIN_PRIOR * (self.centred() - self.expected).square().mean()

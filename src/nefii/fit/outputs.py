@@ -88,9 +88,10 @@ def write_outputs(folder: Path, cfg: FitConfig, model: NeFIIModel, box: tuple[to
 
 
 def write_exposure(folder: Path, names: tuple[str, ...], gains: torch.Tensor) -> None:
-    """``exposure.json``: each training view's learned RGB gain (``exposure = per_view``), by image file."""
+    """``exposure.json``: each training view's learned RGB gain (``exposure = per_view``), by image file; their
+    geometric mean is 1 per channel."""
     rows = {name: [round(float(x), 5) for x in g] for name, g in zip(names, gains.detach().cpu())}
-    write_text_atomic(folder / "exposure.json", json.dumps({"reference": names[0], "gains": rows}, indent=2) + "\n")
+    write_text_atomic(folder / "exposure.json", json.dumps({"gains": rows}, indent=2) + "\n")
 
 
 def load_run(folder: str | Path, device: torch.device | str = "cpu") -> FittedRun:

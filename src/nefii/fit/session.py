@@ -118,12 +118,19 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     clipped = 0 if scene.clipped is None else int(scene.clipped.sum())
     say(f"{len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels"
         + (f"; {clipped} clipped pixels (some channel at the file's top value) left out" if clipped else ""))
+    if scene.exposure is not None:
+        span = float(scene.exposure.log2().max() - scene.exposure.log2().min())
+        if cfg.exposure == "per_view":
+            say(f"per-view gains start from the photos' EXIF exposures ({span:.1f} stops apart)")
+        elif span > 1.0 / 3.0:
+            say(f"the photos' EXIF exposures are {span:.1f} stops apart: --set exposure=per_view learns a gain "
+                "per photo")
     model = build_model(cfg, box, features)
     if checkpoint is None:
         n_sharp = initialise_light(model, pixels, geometry, cfg)
         if n_sharp:
             say(f"lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
-    trainer = Trainer(cfg, model, geometry, pixels, device, dist, num_views=len(scene))
+    trainer = Trainer(cfg, model, geometry, pixels, device, dist, num_views=len(scene), metered=scene.exposure)
     if checkpoint is not None:
         checkpoint.restore(trainer.load_state_dict, "this run's model")
         say(f"resumed from {checkpoint.path} at step {trainer.step}")

@@ -47,11 +47,13 @@ class StepLog:
 
 class Trainer:
     def __init__(self, cfg: FitConfig, model: NeFIIModel, geometry: Geometry, pixels: Pixels,
-                 device: torch.device, dist: DistContext = DistContext(), num_views: int = 1) -> None:
-        """``num_views``: the training views (``exposure = per_view`` learns a gain for each but the first)."""
+                 device: torch.device, dist: DistContext = DistContext(), num_views: int = 1,
+                 metered: Tensor | None = None) -> None:
+        """``num_views``: the training views (``exposure = per_view`` learns a gain for each); ``metered``: their
+        EXIF exposures, where the gains start (:class:`nefii.fit.exposure.ViewGains`)."""
         self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
         self.dist = dist
-        self.gains = ViewGains(num_views).to(device) if cfg.exposure == "per_view" else None
+        self.gains = ViewGains(num_views, metered).to(device) if cfg.exposure == "per_view" else None
         self.params = [p for p in self.model.parameters() if p.requires_grad]   # a frozen SDF's are not
         groups = model.param_groups(cfg.lr, cfg.lr_light, cfg.lr_light_shape)
         if self.gains is not None:  # a gain is a light level: it moves at the light's rate

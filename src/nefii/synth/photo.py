@@ -7,8 +7,8 @@ capture as nerfstudio's ``ns-process-data`` would hand it over:
 2. Brown-Conrady lens distortion (``k1``, ``k2``): OpenCV's ``undistortPoints`` says where each photo pixel
    looks in the pinhole render, which is resampled there; the photo's focal length is the render's times
    the zoom that keeps every photo pixel inside the render;
-3. a per-view exposure (``2^u``, ``u`` uniform in +-``ev`` stops) and white-balance drift (a log-normal
-   gain per channel), on top of one exposure for the scene that puts the object's brightest 0.5% of pixels
+3. a per-view exposure (``2^u``, ``u`` uniform in +-``ev`` stops, recorded as the EXIF exposure time as a
+   phone records it) and white-balance drift (a log-normal gain per channel, not recorded), on top of one exposure for the scene that puts the object's brightest 0.5% of pixels
    over 1 (metered on the subject; the sky behind it clips more);
 4. sensor noise: shot noise (variance proportional to the signal) and read noise, in linear light;
 5. highlights clipped at 1, the sRGB curve, 8 bits, JPEG at ``quality``.
@@ -123,6 +123,21 @@ def _composited(clean: Path, name: str, envmap: torch.Tensor, c2w: torch.Tensor,
     return rgba[..., :3] + (1.0 - rgba[..., 3:]) * background
 
 
+SHUTTER = 1.0 / 120.0
+"""the exposure time of a view at 0 stops (s); ISO 100 and f/1.8 throughout, as a phone's fixed aperture"""
+
+
+def _exif(stops: float):
+    """The EXIF a phone writes for a view ``stops`` brighter than the scene's exposure: its shutter time
+    (white balance, which a phone does not record as a gain, stays for the fit to find)."""
+    from PIL import ExifTags, Image
+
+    exif = Image.Exif()
+    exif[ExifTags.IFD.Exif] = {ExifTags.Base.ExposureTime: SHUTTER * 2.0**stops, ExifTags.Base.FNumber: 1.8,
+                               ExifTags.Base.ISOSpeedRatings: 100}
+    return exif
+
+
 def _check_same_views(render: dict, clean: dict, where: Path) -> None:
     """``render``'s splits are ``clean``'s views at an integer multiple of its resolution."""
     for split, r in render.items():
@@ -179,7 +194,8 @@ def make_photos(clean: str | Path, out: str | Path, settings: PhotoSettings = Ph
             img = np.clip(img * gain, 0.0, None)
             img = img + np.sqrt(settings.shot_noise * img + settings.read_noise**2) * rng.standard_normal(img.shape)
             name = f"images/frame_{n + 1:05d}.jpg"
-            Image.fromarray(to_uint8(linear_to_srgb(img))).save(tmp / name, quality=settings.quality)
+            Image.fromarray(to_uint8(linear_to_srgb(img))).save(tmp / name, quality=settings.quality,
+                                                                 exif=_exif(stops))
             frames.append({"file_path": name, "transform_matrix": (sc.cameras.c2w[i].numpy() @ GL).tolist(),
                            "fl_x": float(K_photo[0, 0]), "fl_y": float(K_photo[1, 1]),
                            "cx": float(K_photo[0, 2]), "cy": float(K_photo[1, 2])})
