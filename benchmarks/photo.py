@@ -16,8 +16,9 @@ each scored by ``nefii eval RUN --data CLEAN`` on the clean test views (albedo a
 channel, so the capture's unknown overall exposure does not count). The clean-input reference is the
 quality benchmark's ``full`` run on the same scene (``benchmarks.quality``; true mesh, masked) for the
 mesh rows and the geometry benchmark's masked reconstruction fit where it exists. Writes
-``benchmarks/results/photo.md``. Target (issue 30): albedo PSNR within 1.5 dB and roughness MSE within 1.5x
-of the clean-input fit on the same geometry path, every scene.
+``benchmarks/results/photo.md`` with every finished run of the seed, this invocation's or earlier.
+Target (issue 30): albedo PSNR within 1.5 dB and roughness MSE within 1.5x of the clean-input fit on the
+same geometry path, every scene.
 """
 from __future__ import annotations
 
@@ -121,7 +122,7 @@ def main() -> None:
              "| scene | config | photo | clean | albedo vs clean | roughness vs clean | target |",
              "|---|---|---|---|---|---|---|"]
     fmt = lambda m: " / ".join(f"{m[k]:.4f}" if k == "roughness_mse" else f"{m[k]:.2f}" for k in KEYS)  # noqa: E731
-    for s, c in jobs:
+    for s, c in [(s, c) for s in SCENES for c in CONFIGS]:  # every finished run, this invocation's or earlier
         m, ref = metrics(photo_run(s, c, args.seed)), reference(s, c)
         if m is None:
             continue
