@@ -3,8 +3,9 @@
     python -m benchmarks.photo [--scenes bowl cup ...] [--configs mesh mesh_shared geometry] [--jobs 2]
 
 Each scene (128 x 128, 64 views, synthesised once, and again at 256 x 256 for the photos) is turned into a
-capture by ``nefii.synth.photo`` (what ``nefii synth SCENE --photo`` writes: 256 x 256 8-bit JPEG, clipped highlights, per-view exposure within +-1 EV and
-white-balance drift, lens distortion, noise, no masks, a nerfstudio ``transforms.json``), then
+capture by ``nefii.synth.photo`` (what ``nefii synth SCENE --photo`` writes: 256 x 256 8-bit JPEG, clipped
+highlights, per-view exposure within +-1 EV and white-balance drift, lens distortion, noise, no masks, a
+nerfstudio ``transforms.json``), then
 
 - ``mesh``: ``nefii fit PHOTO --mesh MESH --set exposure=per_view`` on the scene's true mesh (the photo's
   cameras are the clean scene's, so the mesh is in their world): what the photometric problems cost alone;
@@ -78,7 +79,8 @@ def run_one(name: str, config: str, seed: int, threads: int) -> None:
     if not (run / "model.pt").exists():
         resume = ["--resume"] if (run / "checkpoints").exists() else []
         proc = subprocess.run([*nefii, "fit", str(photo), "--out", str(run), "--quiet", *where, *resume,
-                               *set_flags([*CONFIGS[config], f"seed={seed}", f"max_image_side={RES}"], threads)], capture_output=True, text=True)
+                               *set_flags([*CONFIGS[config], f"seed={seed}", f"max_image_side={RES}"], threads)],
+                              capture_output=True, text=True)
         if proc.returncode != 0:
             raise RuntimeError(f"fit {name}/{config} failed:\n{proc.stderr[-3000:]}")
         (run / "benchmark.json").write_text(json.dumps({"code": code_version()}) + "\n")

@@ -9,7 +9,7 @@ import torch
 from data_fixtures import make_truth, write_nefii, write_physg
 from nefii.camera import pixel_rays
 from nefii.data import load_scene
-from nefii.data.downscale import downscaled, factor_for
+from nefii.data.downscale import downscaled, factor_for, training_images
 
 
 def _scene(tmp_path, n=3, size=(24, 30)):
@@ -60,6 +60,9 @@ def test_pixels_and_rays_stay_together(tmp_path, max_side):
 def test_small_images_and_scoring_data_are_left_alone(tmp_path):
     scene = _scene(tmp_path)
     assert downscaled(scene, 30)[0] is scene
+    assert training_images(scene, 30) == (scene, None)
+    small, line = training_images(scene, 15)
+    assert small.width == 15 and line == "images averaged down 2x: 30x24 -> 15x12 (max_image_side 15)"
     write_nefii(tmp_path / "t", make_truth(2), "test")
     with_truth = load_scene(tmp_path / "t", "test")
     assert with_truth.ground_truth is not None

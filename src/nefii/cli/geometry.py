@@ -15,7 +15,7 @@ import torch
 import trimesh
 
 from ..data import load_scene
-from ..data.downscale import downscaled
+from ..data.downscale import training_images
 from ..data.fingerprint import fingerprint, require_same
 from ..errors import InputError
 from ..io.atomic import atomic_path, write_text_atomic
@@ -97,11 +97,9 @@ def _geometry(args: argparse.Namespace, cfg: GeometryConfig, device: torch.devic
         checkpoint = resume_point(out, "geometry", manifest, _warn, lambda line: print(f"nefii geometry: {line}"))
     threads = set_threads(cfg.threads)
     scene = load_scene(args.data, "train")
-    full = (scene.width, scene.height)
-    scene, factor = downscaled(scene, cfg.max_image_side)
-    if factor > 1:
-        print(f"nefii geometry: images averaged down {factor}x: {full[0]}x{full[1]} -> {scene.width}x{scene.height} "
-              f"(max_image_side {cfg.max_image_side})")
+    scene, line = training_images(scene, cfg.max_image_side)
+    if line:
+        print(f"nefii geometry: {line}")
     t0 = time.time()
     if args.from_mesh is not None:
         mesh = _load_mesh(args.from_mesh)

@@ -50,8 +50,8 @@ EXPOSURE_SPAN = 20.0
 def read_exposures(views: Sequence[View]) -> np.ndarray | None:
     """Each view's EXIF exposure when every view has one, else ``None`` (a warning when only some have
     one). Readers of photographs (nerfstudio, COLMAP) call it on the original files before undistorting
-    them, so bad metadata leaves nothing written. Exposures spanning more than :data:`EXPOSURE_SPAN` stops are an :class:`InputError` naming the
-    view farthest from the median."""
+    them, so bad metadata leaves nothing written. Exposures spanning more than :data:`EXPOSURE_SPAN` stops
+    are an :class:`InputError` naming the view farthest from the median."""
     found = [read_exposure(v.image) for v in views]
     have = [e is not None for e in found]
     if not any(have):

@@ -55,3 +55,13 @@ def downscaled(scene: SceneData, max_side: int) -> tuple[SceneData, int]:
         clipped=None if scene.clipped is None else _blocks(scene.clipped[crop], f) > 0,
         cameras=Cameras(K=K, c2w=scene.cameras.c2w, height=h // f, width=w // f),
     ), f
+
+
+def training_images(scene: SceneData, max_side: int) -> tuple[SceneData, str | None]:
+    """:func:`downscaled` for a stage that trains on ``scene``, and the line that says what it did (``None``
+    when the images are used as they are)."""
+    small, f = downscaled(scene, max_side)
+    if f == 1:
+        return scene, None
+    return small, (f"images averaged down {f}x: {scene.width}x{scene.height} -> {small.width}x{small.height} "
+                   f"(max_image_side {max_side})")

@@ -20,8 +20,8 @@ from jaxtyping import Float, Int
 from torch import Tensor, nn
 
 GAIN_PRIOR = 1e-3
-"""weight of ``mean((log g - log g_0)^2)``: a tie-breaker where the images say nothing about a gain (a view whose pixels
-are all clipped), far below the colour loss of any view with data"""
+"""weight of ``mean((log g - log g_0)^2)``: a tie-breaker where the images say nothing about a gain (a view
+whose pixels are all clipped), far below the colour loss of any view with data"""
 
 
 class ViewGains(nn.Module):

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from ..data import load_scene
-from ..data.downscale import downscaled
+from ..data.downscale import training_images
 from ..data.fingerprint import DataFingerprint, fingerprint, require_same
 from ..data.scene import SceneData
 from ..io.checkpoints import LoadedCheckpoint
@@ -99,11 +99,9 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     or, with ``checkpoint`` (:func:`nefii.io.checkpoints.load_latest_checkpoint`), the training state in it. ``resume_of`` (the run folder and the data in its manifest) refuses
     data other than that before anything is trained. ``say`` gets one line per stage."""
     scene = load_scene(data, "train")
-    full = (scene.width, scene.height)
-    scene, factor = downscaled(scene, cfg.max_image_side)
-    if factor > 1:
-        say(f"images averaged down {factor}x: {full[0]}x{full[1]} -> {scene.width}x{scene.height} "
-            f"(max_image_side {cfg.max_image_side})")
+    scene, line = training_images(scene, cfg.max_image_side)
+    if line:
+        say(line)
     source = resolve_source(mesh, geometry_dir, scene.mesh_path, cfg.geometry_mode, data)
     cfg, source = adapt_to_source(cfg, source)
     geometry, features = source.open()

@@ -8,8 +8,8 @@ capture as nerfstudio's ``ns-process-data`` would hand it over:
    looks in the pinhole render, which is resampled there; the photo's focal length is the render's times
    the zoom that keeps every photo pixel inside the render;
 3. a per-view exposure (``2^u``, ``u`` uniform in +-``ev`` stops, recorded as the EXIF exposure time as a
-   phone records it) and white-balance drift (a log-normal gain per channel, not recorded), on top of one exposure for the scene that puts the object's brightest 0.5% of pixels
-   over 1 (metered on the subject; the sky behind it clips more);
+   phone records it) and white-balance drift (a log-normal gain per channel, not recorded), on top of one
+   exposure for the scene that puts the object's brightest 0.5% of pixels over 1 (metered on the subject; the sky behind it clips more);
 4. sensor noise: shot noise (variance proportional to the signal) and read noise, in linear light;
 5. highlights clipped at 1, the sRGB curve, 8 bits, JPEG at ``quality``.
 
