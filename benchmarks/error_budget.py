@@ -244,6 +244,8 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
         overrides.append(f"steps={drift_steps}")
     if row in ("drift", "indirect_known"):
         overrides.append("unobserved=false")                        # no cache to keep consistent
+    if row in ("drift", "light_known"):
+        overrides.append("light_prior=0")                           # a prior on a light that is not fitted
     cfg = resolve_config("cpu", overrides)
     session = prepare_fit(cfg, data, device=device)
     cfg, model, geometry = session.config, session.model, session.geometry
