@@ -119,6 +119,12 @@ class FitConfig:
     light_prior: Annotated[float, Range(0)] = 2e-4
     """weight of a prior that darkens the light where the object barely sees it (0: off, as the paper;
     :mod:`nefii.fit.light_prior`)"""
+    light_solve_every: Annotated[int, Range(0)] = 300
+    """every this many steps the SG amplitudes are set to Eq. 7's minimiser given the rest of the model, instead
+    of only following Adam (0: never, as the paper; :mod:`nefii.fit.light_solve`). Only with SG lobes and
+    ``loss = l2_pair`` (the solve minimises that loss); otherwise no solve runs"""
+    light_solve_pixels: Annotated[int, Range(1)] = 8192
+    """training pixels (and as many background pixels) each light solve reads"""
     exposure: Literal["shared", "per_view"] = "shared"
     """``shared``: every view shares one exposure and white balance (renders, a camera on manual); ``per_view``:
     a learned RGB gain per training view, their geometric mean held at 1 (phone photos: auto exposure and white
@@ -210,7 +216,8 @@ PRESETS: dict[str, dict[str, Any]] = {
             "lookup_smoothing_reconstructed": 0.04},
     "paper": {
         "steps": 60000, "batch_pixels": 2048, "num_samples": 64, "lr": 5e-4, "lr_light": 5e-3,
-        "tonemap": "none", "loss": "l1", "smooth_albedo": 0.0, "light_prior": 0.0, "roughness_warmup": 50 / 120,
+        "tonemap": "none", "loss": "l1", "smooth_albedo": 0.0, "light_prior": 0.0, "light_solve_every": 0,
+        "roughness_warmup": 50 / 120,
         "material": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 8},
         "cache": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 4},
         "light": {"sharpness_max": 3000.0}, "brdf": {"diffuse": "lambert", "shadowing": "schlick"},

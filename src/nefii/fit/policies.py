@@ -24,3 +24,15 @@ class Alternation:
 
     def unobserved(self, step: int) -> bool:
         return self.enabled and self.every > 0 and step % self.every == self.every - 1
+
+
+@dataclass(frozen=True)
+class LightSolveSchedule:
+    """The light's amplitudes are solved every ``every`` steps (0: never), not in the last 5% of the ``steps``
+    (Adam's restarted moments then settle before the end)."""
+
+    every: int
+    steps: int
+
+    def due(self, step: int) -> bool:
+        return self.every > 0 and step > 0 and step % self.every == 0 and step < 0.95 * self.steps

@@ -21,11 +21,23 @@ from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
 from .exposure import ViewGains
 from .light_prior import light_coverage, unseen_light_prior
+from .light_solve import (average_quadratic, background_quadratic, linear_term, lobe_design, pixel_quadratic,
+                          sample_directions, solve_nonnegative)
+from ..render.sg import SGMixture, sg_integral
+from .losses import tonemap_slope
 from .losses import Gains, LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, smoothness, unobserved_loss
 from .model import NeFIIModel, decode_material
 from .path_trace import SurfacePoints, Transport, path_trace
 from .pixels import Pixels
-from .policies import Alternation, RoughnessWarmup
+from .policies import Alternation, LightSolveSchedule, RoughnessWarmup
+
+LIGHT_SOLVE_SAMPLES = 32
+"""estimator samples per pixel when the light's amplitudes are solved (the solve is rare: its noise is cheap
+to cut)"""
+LIGHT_SOLVE_CHUNK = 1024
+"""pixels per pass of the solve (bounds its memory)"""
+AMPLITUDE_MIN = 1e-4
+"""the least amplitude a solved lobe keeps (its log is the parameter)"""
 
 
 def transport_of(cfg: FitConfig) -> Transport:
@@ -73,6 +85,8 @@ class Trainer:
         self.prior = SmoothnessPrior(cfg.smooth_albedo, cfg.smooth_radius * geometry.scale)
         self.coverage = (light_coverage(pixels.points, geometry, cfg.ray_offset * geometry.scale, cfg.seed)
                          if cfg.light_prior > 0 else None)
+        solves = cfg.light.kind == "sg" and cfg.loss == "l2_pair"     # what light_solve's quadratic is
+        self.light_solve = LightSolveSchedule(cfg.light_solve_every if solves else 0, cfg.steps)
         self.step = 0
 
     # ---- one step
@@ -93,9 +107,43 @@ class Trainer:
                             self.transport)
         return material, traced
 
+    @torch.no_grad()
+    def solve_light(self, rough: float | None) -> None:
+        """The SG amplitudes set to Eq. 7's minimiser given the rest of the model (:mod:`nefii.fit.light_solve`),
+        on ``light_solve_pixels`` training pixels and background pixels; Adam's moments for them restart."""
+        cfg, px, model, g = self.cfg, self.pixels, self.model, self.generator
+        env = model.env
+        sg = env()
+        sg = SGMixture(sg.axis.detach(), sg.sharpness.detach(), sg.amplitude.detach())
+        idx = torch.randint(len(px.points), (cfg.light_solve_pixels,), generator=g, device=self.device)
+        q = None
+        for part in idx.split(LIGHT_SOLVE_CHUNK):
+            pts = px.points[part]
+            material = decode_material(model, pts.position, pts.lookup_normal, rough)
+            samples = sample_directions(pts, material, env.light_sampler(), LIGHT_SOLVE_SAMPLES, g)
+            design = lobe_design(pts, material, samples, sg, self.geometry, model.cache, self.transport)
+            gain = None if self.gains is None else self.gains(px.view[part])
+            term = pixel_quadratic(design, px.rgb[part], tonemap_slope(px.rgb[part], cfg.tonemap), gain)
+            q = term.scaled(len(part) / len(idx)) if q is None else q + term.scaled(len(part) / len(idx))
+        if len(px.bg_dirs) and cfg.beta2 > 0 and cfg.background_pixels > 0:
+            j = torch.randint(len(px.bg_dirs), (cfg.light_solve_pixels,), generator=g, device=self.device)
+            gain = None if self.gains is None else self.gains(px.bg_view[j])
+            q = q + background_quadratic(sg, px.bg_dirs[j], px.bg_rgb[j], tonemap_slope(px.bg_rgb[j], cfg.tonemap),
+                                         gain).scaled(cfg.beta2)
+        if self.coverage is not None:
+            integral = sg_integral(sg.sharpness)
+            energy = float((sg.amplitude.mean(-1) * integral).sum())
+            q = q + linear_term(cfg.light_prior * self.coverage.at(sg.axis) * integral / max(energy, 1e-12))
+        q = average_quadratic(q, self.dist)
+        x = solve_nonnegative(q, sg.amplitude.T)
+        env.log_amplitude.copy_(x.T.to(env.log_amplitude).clamp_min(AMPLITUDE_MIN).log())
+        self.optimizer.state[env.log_amplitude] = {}
+
     def train_step(self) -> StepLog:
         cfg, step, model = self.cfg, self.step, self.model
         rough = self.warmup.override(step)
+        if self.light_solve.due(step):
+            self.solve_light(rough)
         if self.alternation.unobserved(step) and len(self.buffer) > 0:
             # ---- Eq. 8: secondary hits drawn from the buffer, path-traced against the cache there
             pts = self.buffer.sample(cfg.unobserved_points, self.generator)
