@@ -292,7 +292,7 @@ def drift_figures(model: NeFIIModel, scene, geometry) -> dict:
 
 # --------------------------------------------------------------------------- table
 
-def table(runs: Path, where: str) -> None:
+def table(runs: Path, where: str, code: str | None = None) -> None:
     found: dict[tuple[str, str], list[dict]] = {}
     for f in sorted(runs.glob("*/*/scores.json")):
         blob = json.loads(f.read_text())
@@ -307,13 +307,13 @@ def table(runs: Path, where: str) -> None:
         return (fmt.format(m) + (f" ± {fmt.format(np.ptp(vals) / 2)}" if len(vals) > 1 else "")) + \
             ("" if len(vals) > 1 else " (1 seed)")
 
-    lines = [f"# error_budget ({stamp()}, code {code_version()})", "", f"Table written on: {machine()}. "
+    lines = [f"# error_budget ({stamp()}, runs at code {code or code_version()})", "", f"Table written on: {machine()}. "
              f"Runs: {where or 'here'}.", "",
              "The `cpu` preset on ground-truth geometry with one unknown replaced by the truth at a time "
              "(benchmarks/error_budget.py). Mean of the seeds ± half their spread; masked test views. "
-             "Albedo aligned per view and channel as eval does. The fit rows were scored when eval read the "
-             "material at pixel centres (compare them with `truth_point`, the true material read that way); eval "
-             "now averages each pixel's sub-pixel rays as the ground truth does (`truth_filtered`).", ""]
+             "Albedo aligned per view and channel as eval does, each pixel's material averaged over its sub-pixel "
+             "rays as the ground truth's layers are (`truth_filtered` is that protocol's ceiling, `truth_point` "
+             "the material read at pixel centres).", ""]
     for scene in scenes:
         lines += [f"## {scene}", "", "| row | albedo PSNR | roughness MSE | specular PSNR | RGB PSNR | drift glossy "
                   "| drift rough | seeds |", "|---|---|---|---|---|---|---|---|"]
@@ -348,9 +348,10 @@ def main() -> None:
     t = sub.add_parser("table")
     t.add_argument("runs", type=Path)
     t.add_argument("--where", default="", help="where and how the runs ran, for the record")
+    t.add_argument("--code", default=None, help="the commit the runs were made at (default: the current one)")
     args = ap.parse_args()
     if args.cmd == "table":
-        table(args.runs, args.where)
+        table(args.runs, args.where, args.code)
         return
     torch.set_num_threads(args.threads)
     out = args.out / args.data.name / f"{args.row}_s{args.seed}"
