@@ -7,11 +7,11 @@ import torch
 
 from fit_fixtures import write_rendered_scene
 from nefii.fit.config import resolve_config
-from nefii.fit.light_solve import (Quadratic, background_quadratic, linear_term, lobe_design, lobe_kernels,
-                                   pixel_quadratic, sample_directions, solve_nonnegative)
+from nefii.fit.light_solve import (Quadratic, background_quadratic, linear_term, lobe_design, pixel_quadratic,
+                                   solve_nonnegative)
 from nefii.fit.losses import pair_distance
 from nefii.fit.model import decode_material
-from nefii.fit.path_trace import path_trace
+from nefii.fit.path_trace import path_trace, sample_directions
 from nefii.fit.policies import LightSolveSchedule
 from nefii.fit.session import prepare_fit
 from nefii.render.estimator import combine_pair
@@ -56,13 +56,6 @@ def test_the_design_times_the_amplitudes_is_the_estimate(tiny_scene):
     for h in range(2):
         linear = torch.einsum("pck,kc->pc", design.B[h], sg.amplitude) + design.c[h]
         torch.testing.assert_close(linear, halves[h].rgb, rtol=1e-3, atol=1e-5)   # float32 sums in other orders
-
-
-def test_lobe_kernels_are_the_sg_radiance(tiny_scene):
-    env = _trainer(tiny_scene).model.env
-    w = torch.nn.functional.normalize(torch.randn(50, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
-    with torch.no_grad():
-        torch.testing.assert_close(lobe_kernels(_sg(env), w) @ _sg(env).amplitude, env.radiance(w), rtol=2e-4, atol=1e-6)
 
 
 def test_the_solver_is_nnls():

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
+from torch import Tensor
 
 from ..errors import InputError
 
@@ -52,19 +53,23 @@ def local_device(device: torch.device, ctx: DistContext) -> torch.device:
     return device
 
 
+def all_mean(tensors: list[Tensor], ctx: DistContext) -> list[Tensor]:
+    """The mean of each tensor over every process (one flat all-reduce; a collective). Alone: ``tensors``."""
+    if not ctx.active:
+        return tensors
+    flat = torch.cat([t.reshape(-1) for t in tensors])
+    dist.all_reduce(flat)
+    flat /= ctx.world_size
+    return list(torch.split(flat, [t.numel() for t in tensors]))
+
+
 def average_gradients(params: list[torch.nn.Parameter], ctx: DistContext) -> None:
     """All-reduce the gradients of ``params`` (one flat buffer) and divide by the world size."""
     if not ctx.active:
         return
     grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params]
-    flat = torch.cat([g.reshape(-1) for g in grads])
-    dist.all_reduce(flat)
-    flat /= ctx.world_size
-    offset = 0
-    for p, g in zip(params, grads):
-        n = g.numel()
-        p.grad = flat[offset:offset + n].view_as(p)
-        offset += n
+    for p, g in zip(params, all_mean(grads, ctx)):
+        p.grad = g.view_as(p)
 
 
 def any_rank(flag: bool, ctx: DistContext, device: torch.device) -> bool:

@@ -24,11 +24,13 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from ..raycast.base import Geometry, Rays, spawn_rays
+from ..raycast.base import Geometry
 from ..render.brdf import Material
-from ..render.estimator import DirectionSamples, combine_pair, sample_mis_directions
-from ..render.sg import SGMixture, sg_integral
-from .path_trace import SurfacePoints, Transport
+from ..render.estimator import DirectionSamples, combine_pair
+from ..render.sg import SGMixture, sg_lobes
+from .distributed import DistContext, all_mean
+from .light_init import fista_nonnegative
+from .path_trace import SurfacePoints, Transport, trace_live_samples
 
 
 @dataclass(frozen=True)
@@ -43,11 +45,6 @@ class Quadratic:
 
     def scaled(self, s: float) -> "Quadratic":
         return Quadratic(self.A * s, self.r * s)
-
-
-def lobe_kernels(sg: SGMixture, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs K"]:
-    """``G_k(w) = exp(lambda_k (w . axis_k - 1))``: each lobe's radiance at unit amplitude."""
-    return torch.exp(sg.sharpness * (w @ sg.axis.T - 1.0))
 
 
 @dataclass(frozen=True)
@@ -77,19 +74,16 @@ def lobe_design(pts: SurfacePoints, material: Material, samples: DirectionSample
     """The design of :class:`LobeDesign` at ``pts`` for the drawn ``samples`` (secondary rays traced
     against ``geometry``; ``cache(x', n', wo')`` the radiance where they hit)."""
     wi = samples.wi
-    b_idx, s_idx = (samples.weight > 0).nonzero(as_tuple=True)
-    w_live = wi[b_idx, s_idx]
+    live = trace_live_samples(pts, samples, geometry, transport)
+    b_idx, s_idx, w_live = live.point, live.sample, live.direction
     L_hit = wi.new_zeros(wi.shape)
-    escapes = torch.ones(len(w_live), dtype=torch.bool, device=wi.device)
-    if transport.visibility:
-        rays = spawn_rays(pts.position[b_idx], pts.geometric_normal[b_idx], w_live, transport.ray_offset * geometry.scale)
-        hit = geometry.intersect(Rays(rays.origins, rays.directions))
-        escapes = ~hit.valid
-        if transport.indirect and bool(hit.valid.any()):
-            L_hit[b_idx[hit.valid], s_idx[hit.valid]] = cache(hit.position[hit.valid], hit.normal[hit.valid],
-                                                              -w_live[hit.valid])
-    G = wi.new_zeros(*wi.shape[:2], len(sg.sharpness))
-    G[b_idx[escapes], s_idx[escapes]] = lobe_kernels(sg, w_live[escapes])
+    escapes = live.escapes
+    if live.hit is not None and transport.indirect and bool(live.hit.valid.any()):
+        hit = live.hit
+        L_hit[b_idx[hit.valid], s_idx[hit.valid]] = cache(hit.position[hit.valid], hit.normal[hit.valid],
+                                                          -w_live[hit.valid])
+    G = wi.new_zeros(*wi.shape[:2], sg.num_lobes)
+    G[b_idx[escapes], s_idx[escapes]] = sg_lobes(w_live[escapes], sg)
     t1, t2 = sample_throughput(samples, material, pts.normal)
     return LobeDesign((torch.einsum("psc,psk->pck", t1, G), torch.einsum("psc,psk->pck", t2, G)),
                       ((t1 * L_hit).sum(1), (t2 * L_hit).sum(1)))
@@ -112,7 +106,7 @@ def background_quadratic(sg: SGMixture, dirs: Float[Tensor, "Q 3"], target: Floa
                          weight: Float[Tensor, "Q 3"], gain: Float[Tensor, "Q 3"] | None = None) -> Quadratic:
     """``mean w^2 (g G mu - t)^2`` of background pixels as a :class:`Quadratic`."""
     g = torch.ones_like(target) if gain is None else gain
-    G = lobe_kernels(sg, dirs).double().unsqueeze(1) * g.double().unsqueeze(-1)      # (Q, 3, K)
+    G = sg_lobes(dirs, sg).double().unsqueeze(1) * g.double().unsqueeze(-1)      # (Q, 3, K)
     w2 = weight.double() ** 2
     return Quadratic(torch.einsum("qc,qck,qcj->ckj", w2, G, G) / len(dirs),
                      torch.einsum("qc,qck,qc->ck", w2, G, target.double()) / len(dirs))
@@ -125,15 +119,10 @@ def linear_term(coefficient: Float[Tensor, " K"], channels: int = 3) -> Quadrati
                      -0.5 * coefficient.double().expand(channels, K).clone())
 
 
-def average_quadratic(q: Quadratic, ctx) -> Quadratic:
+def average_quadratic(q: Quadratic, ctx: DistContext) -> Quadratic:
     """The mean of every process's :class:`Quadratic` (a collective; the processes then solve the same)."""
-    if not ctx.active:
-        return q
-    import torch.distributed as dist
-    flat = torch.cat([q.A.reshape(-1), q.r.reshape(-1)])
-    dist.all_reduce(flat)
-    flat /= ctx.world_size
-    return Quadratic(flat[:q.A.numel()].view_as(q.A), flat[q.A.numel():].view_as(q.r))
+    A, r = all_mean([q.A, q.r], ctx)
+    return Quadratic(A.view_as(q.A), r.view_as(q.r))
 
 
 def solve_nonnegative(q: Quadratic, x0: Float[Tensor, "C K"], iterations: int = 800) -> Float[Tensor, "C K"]:
@@ -149,17 +138,5 @@ def solve_nonnegative(q: Quadratic, x0: Float[Tensor, "C K"], iterations: int = 
         lip = v.norm(dim=1, keepdim=True).clamp_min(1e-30)
         v = v / lip
     step = 0.5 / lip.squeeze(-1)                                  # 1 / (2 lambda_max), per channel
-    x, y, t = x0.double().clamp_min(0.0), x0.double().clamp_min(0.0), 1.0
-    for _ in range(iterations):
-        grad = 2.0 * (A @ y.unsqueeze(-1)).squeeze(-1) - 2.0 * q.r
-        x_new = (y - step * grad).clamp_min(0.0)
-        t_new = 0.5 * (1.0 + (1.0 + 4.0 * t * t) ** 0.5)
-        y = x_new + ((t - 1.0) / t_new) * (x_new - x)
-        x, t = x_new, t_new
-    return x
-
-
-def sample_directions(pts: SurfacePoints, material: Material, sampler, num_samples: int,
-                      generator: torch.Generator | None) -> DirectionSamples:
-    """The estimator's MIS directions at ``pts`` (as :func:`nefii.fit.path_trace.path_trace` draws them)."""
-    return sample_mis_directions(pts.normal, pts.wo, material.roughness.detach(), sampler, num_samples, generator)
+    return fista_nonnegative(lambda y: 2.0 * (A @ y.unsqueeze(-1)).squeeze(-1) - 2.0 * q.r,
+                             x0.double().clamp_min(0.0), step, iterations)

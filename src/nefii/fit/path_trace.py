@@ -10,7 +10,7 @@ from dataclasses import dataclass, fields
 from typing import Callable
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from ..raycast.base import Geometry, Rays, SurfaceHit, spawn_rays
@@ -85,23 +85,53 @@ def _estimate(samples: DirectionSamples, material: Material, n: Tensor, L_i: Ten
     return mean_of_pair(pair, N), pair
 
 
+def sample_directions(pts: SurfacePoints, material: Material, sampler, num_samples: int,
+                      generator: torch.Generator | None) -> DirectionSamples:
+    """The estimator's MIS directions at ``pts`` with the ``material`` there (no gradient through them)."""
+    return sample_mis_directions(pts.normal, pts.wo, material.roughness.detach(), sampler, num_samples, generator)
+
+
+@dataclass(frozen=True)
+class LiveSamples:
+    """The directions that carry weight (only they are traced and lit), with their secondary rays' hits."""
+
+    point: Int[Tensor, " L"]
+    sample: Int[Tensor, " L"]
+    direction: Float[Tensor, "L 3"]
+    hit: SurfaceHit | None
+    """None without visibility (every direction then sees the environment)"""
+
+    @property
+    def escapes(self) -> Bool[Tensor, " L"]:
+        if self.hit is None:
+            return torch.ones(len(self.direction), dtype=torch.bool, device=self.direction.device)
+        return ~self.hit.valid
+
+
+def trace_live_samples(pts: SurfacePoints, samples: DirectionSamples, geometry: Geometry,
+                       transport: Transport) -> LiveSamples:
+    """The weighted directions of ``samples`` and, with visibility, their secondary rays cast."""
+    b_idx, s_idx = (samples.weight > 0).nonzero(as_tuple=True)
+    w_live = samples.wi[b_idx, s_idx]
+    if not transport.visibility:
+        return LiveSamples(b_idx, s_idx, w_live, None)
+    rays = spawn_rays(pts.position[b_idx], pts.geometric_normal[b_idx], w_live, transport.ray_offset * geometry.scale)
+    return LiveSamples(b_idx, s_idx, w_live, geometry.intersect(Rays(rays.origins, rays.directions)))
+
+
 def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, material: Material, num_samples: int,
                generator: torch.Generator | None, transport: Transport = Transport()) -> PathTraced:
     """Eq. 2-4 at ``pts`` with the ``material`` there: the path-traced colour and the secondary hits."""
-    samples = sample_mis_directions(pts.normal, pts.wo, material.roughness.detach(), model.env.light_sampler(),
-                                    num_samples, generator)
+    samples = sample_directions(pts, material, model.env.light_sampler(), num_samples, generator)
     wi = samples.wi                                                            # (B, S, 3)
-    # only directions that carry weight are traced and lit
-    b_idx, s_idx = (samples.weight > 0).nonzero(as_tuple=True)
-    w_live = wi[b_idx, s_idx]
-    if not transport.visibility:
+    live = trace_live_samples(pts, samples, geometry, transport)
+    b_idx, s_idx, w_live, hit = live.point, live.sample, live.direction, live.hit
+    if hit is None:
         L_i = wi.new_zeros(wi.shape).index_put((b_idx, s_idx), model.env.radiance(w_live))
         no_hits = SurfacePoints(*(wi.new_zeros(0, 3) for _ in fields(SurfacePoints)))
         return PathTraced(*_estimate(samples, material, pts.normal, L_i), no_hits)
 
     # ---- secondary rays
-    rays = spawn_rays(pts.position[b_idx], pts.geometric_normal[b_idx], w_live, transport.ray_offset * geometry.scale)
-    hit = geometry.intersect(Rays(rays.origins, rays.directions))
     secondary = SurfacePoints.from_hit(hit, hit.valid, -w_live[hit.valid])
     # ---- incoming light: V E(w) + (1 - V) L(x', n', -w)
     miss = ~hit.valid

@@ -17,17 +17,17 @@ from tqdm import tqdm
 from ..raycast.base import Geometry
 from ..io.checkpoints import save_checkpoint
 from ..render.brdf import Material
+from ..render.sg import SGMixture, sg_integral
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
 from .exposure import ViewGains
 from .light_prior import light_coverage, unseen_light_prior
 from .light_solve import (average_quadratic, background_quadratic, linear_term, lobe_design, pixel_quadratic,
-                          sample_directions, solve_nonnegative)
-from ..render.sg import SGMixture, sg_integral
-from .losses import tonemap_slope
-from .losses import Gains, LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, smoothness, unobserved_loss
+                          solve_nonnegative)
+from .losses import (Gains, LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, smoothness, tonemap_slope,
+                     unobserved_loss)
 from .model import NeFIIModel, decode_material
-from .path_trace import SurfacePoints, Transport, path_trace
+from .path_trace import SurfacePoints, Transport, path_trace, sample_directions
 from .pixels import Pixels
 from .policies import Alternation, LightSolveSchedule, RoughnessWarmup
 
@@ -116,11 +116,11 @@ class Trainer:
         sg = env()
         sg = SGMixture(sg.axis.detach(), sg.sharpness.detach(), sg.amplitude.detach())
         idx = torch.randint(len(px.points), (cfg.light_solve_pixels,), generator=g, device=self.device)
-        q = None
+        q, sampler = None, env.light_sampler()
         for part in idx.split(LIGHT_SOLVE_CHUNK):
             pts = px.points[part]
             material = decode_material(model, pts.position, pts.lookup_normal, rough)
-            samples = sample_directions(pts, material, env.light_sampler(), LIGHT_SOLVE_SAMPLES, g)
+            samples = sample_directions(pts, material, sampler, LIGHT_SOLVE_SAMPLES, g)
             design = lobe_design(pts, material, samples, sg, self.geometry, model.cache, self.transport)
             gain = None if self.gains is None else self.gains(px.view[part])
             term = pixel_quadratic(design, px.rgb[part], tonemap_slope(px.rgb[part], cfg.tonemap), gain)
