@@ -65,17 +65,11 @@ def nnls_fista(A: Float[Tensor, "P D"], b: Float[Tensor, "P C"], iterations: int
         lip = v.norm()
         v = v / lip.clamp_min(1e-30)
     step = 1.0 / lip.clamp_min(1e-30)
+    x = torch.zeros(A.shape[1], b.shape[1], dtype=A.dtype)
+    y, t = x.clone(), 1.0
     Atb = A.T @ b
-    return fista_nonnegative(lambda y: A.T @ (A @ y) - Atb, torch.zeros(A.shape[1], b.shape[1], dtype=A.dtype),
-                             step, iterations)
-
-
-def fista_nonnegative(gradient, x0: Tensor, step: float | Tensor, iterations: int) -> Tensor:
-    """Accelerated projected gradient descent onto ``x >= 0`` (FISTA) from ``x0``: ``gradient(y)`` of a convex
-    quadratic, ``step`` one over its Lipschitz constant (a tensor broadcasts a step per problem)."""
-    x, y, t = x0, x0.clone(), 1.0
     for _ in range(iterations):
-        x_new = (y - step * gradient(y)).clamp_min(0.0)
+        x_new = (y - step * (A.T @ (A @ y) - Atb)).clamp_min(0.0)
         t_new = 0.5 * (1.0 + math.sqrt(1.0 + 4.0 * t * t))
         y = x_new + ((t - 1.0) / t_new) * (x_new - x)
         x, t = x_new, t_new

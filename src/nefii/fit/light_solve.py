@@ -27,9 +27,8 @@ from torch import Tensor
 from ..raycast.base import Geometry
 from ..render.brdf import Material
 from ..render.estimator import DirectionSamples, combine_pair
-from ..render.sg import SGMixture, sg_lobes
+from ..render.sg import SGMixture
 from .distributed import DistContext, all_mean
-from .light_init import fista_nonnegative
 from .path_trace import SurfacePoints, Transport, trace_live_samples
 
 
@@ -45,6 +44,12 @@ class Quadratic:
 
     def scaled(self, s: float) -> "Quadratic":
         return Quadratic(self.A * s, self.r * s)
+
+
+def lobe_kernels(sg: SGMixture, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs K"]:
+    """``G_k(w) = exp(lambda_k (w . axis_k - 1))``: each lobe's radiance at unit amplitude. (``sg_lobes`` computes
+    the same with another rounding and a floor; switching changes the fit's figures in the last digits.)"""
+    return torch.exp(sg.sharpness * (w @ sg.axis.T - 1.0))
 
 
 @dataclass(frozen=True)
@@ -83,7 +88,7 @@ def lobe_design(pts: SurfacePoints, material: Material, samples: DirectionSample
         L_hit[b_idx[hit.valid], s_idx[hit.valid]] = cache(hit.position[hit.valid], hit.normal[hit.valid],
                                                           -w_live[hit.valid])
     G = wi.new_zeros(*wi.shape[:2], sg.num_lobes)
-    G[b_idx[escapes], s_idx[escapes]] = sg_lobes(w_live[escapes], sg)
+    G[b_idx[escapes], s_idx[escapes]] = lobe_kernels(sg, w_live[escapes])
     t1, t2 = sample_throughput(samples, material, pts.normal)
     return LobeDesign((torch.einsum("psc,psk->pck", t1, G), torch.einsum("psc,psk->pck", t2, G)),
                       ((t1 * L_hit).sum(1), (t2 * L_hit).sum(1)))
@@ -106,7 +111,7 @@ def background_quadratic(sg: SGMixture, dirs: Float[Tensor, "Q 3"], target: Floa
                          weight: Float[Tensor, "Q 3"], gain: Float[Tensor, "Q 3"] | None = None) -> Quadratic:
     """``mean w^2 (g G mu - t)^2`` of background pixels as a :class:`Quadratic`."""
     g = torch.ones_like(target) if gain is None else gain
-    G = sg_lobes(dirs, sg).double().unsqueeze(1) * g.double().unsqueeze(-1)      # (Q, 3, K)
+    G = lobe_kernels(sg, dirs).double().unsqueeze(1) * g.double().unsqueeze(-1)      # (Q, 3, K)
     w2 = weight.double() ** 2
     return Quadratic(torch.einsum("qc,qck,qcj->ckj", w2, G, G) / len(dirs),
                      torch.einsum("qc,qck,qc->ck", w2, G, target.double()) / len(dirs))
@@ -138,5 +143,11 @@ def solve_nonnegative(q: Quadratic, x0: Float[Tensor, "C K"], iterations: int = 
         lip = v.norm(dim=1, keepdim=True).clamp_min(1e-30)
         v = v / lip
     step = 0.5 / lip.squeeze(-1)                                  # 1 / (2 lambda_max), per channel
-    return fista_nonnegative(lambda y: 2.0 * (A @ y.unsqueeze(-1)).squeeze(-1) - 2.0 * q.r,
-                             x0.double().clamp_min(0.0), step, iterations)
+    x, y, t = x0.double().clamp_min(0.0), x0.double().clamp_min(0.0), 1.0
+    for _ in range(iterations):
+        grad = 2.0 * (A @ y.unsqueeze(-1)).squeeze(-1) - 2.0 * q.r
+        x_new = (y - step * grad).clamp_min(0.0)
+        t_new = 0.5 * (1.0 + (1.0 + 4.0 * t * t) ** 0.5)
+        y = x_new + ((t - 1.0) / t_new) * (x_new - x)
+        x, t = x_new, t_new
+    return x
