@@ -119,7 +119,7 @@ class FitConfig:
     light_prior: Annotated[float, Range(0)] = 2e-4
     """weight of a prior that darkens the light where the object barely sees it (0: off, as the paper;
     :mod:`nefii.fit.light_prior`)"""
-    light_solve_every: Annotated[int, Range(0)] = 300
+    light_solve_every: Annotated[int, Range(0)] = 100
     """every this many steps the SG amplitudes are set to Eq. 7's minimiser given the rest of the model, instead
     of only following Adam (0: never, as the paper; :mod:`nefii.fit.light_solve`). Only with SG lobes and
     ``loss = l2_pair`` (the solve minimises that loss); otherwise no solve runs"""
