@@ -6,7 +6,7 @@ where the images constrain it weakly and the albedo pays for it (docs/experiment
 fixed, Eq. 7 is a quadratic in the amplitudes: the estimate of Eq. 2-4 is linear in the incoming radiance
 (``1/N sum_s T_s L_i(w_s)``, ``T_s`` the sample's BRDF, cosine, MIS weight over its pdf), the radiance of an
 escaping ray is ``sum_k mu_k G_k(w_s)`` (``G_k`` the lobe's unit Gaussian), and a hit's is the cache's. So
-every few hundred steps the amplitudes are set to the minimiser over ``mu >= 0``, per channel, of
+every ``light_solve_every`` steps the amplitudes are set to the minimiser over ``mu >= 0``, per channel, of
 
     mean_b w_b^2 (B1_b mu + c1_b - t_b)(B2_b mu + c2_b - t_b)        (Eq. 7's pair loss, ``l2_pair``)
     + beta2 mean_q w_q^2 (G_q mu - t_q)^2                              (background pixels, tone map linearised)

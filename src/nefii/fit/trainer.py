@@ -17,7 +17,7 @@ from tqdm import tqdm
 from ..raycast.base import Geometry
 from ..io.checkpoints import save_checkpoint
 from ..render.brdf import Material
-from ..render.sg import SGMixture, sg_integral
+from ..render.sg import sg_integral
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
 from .exposure import ViewGains
@@ -113,8 +113,7 @@ class Trainer:
         on ``light_solve_pixels`` training pixels and background pixels; Adam's moments for them restart."""
         cfg, px, model, g = self.cfg, self.pixels, self.model, self.generator
         env = model.env
-        sg = env()
-        sg = SGMixture(sg.axis.detach(), sg.sharpness.detach(), sg.amplitude.detach())
+        sg = env()                                    # no gradient: solve_light runs under no_grad
         idx = torch.randint(len(px.points), (cfg.light_solve_pixels,), generator=g, device=self.device)
         q, sampler = None, env.light_sampler()
         for part in idx.split(LIGHT_SOLVE_CHUNK):
