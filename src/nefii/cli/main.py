@@ -12,7 +12,7 @@ from importlib import import_module
 
 from ..errors import InputError
 
-VERBS = ("synth", "geometry", "fit", "eval", "relight", "export", "view", "demo")
+VERBS = ("synth", "geometry", "fit", "refine", "eval", "relight", "export", "view", "demo")
 """verb modules under nefii.cli, in the order ``nefii --help`` lists them"""
 
 

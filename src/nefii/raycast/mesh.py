@@ -137,6 +137,14 @@ class MeshGeometry:
             raise InputError(path, "mesh has NaN/inf vertex coordinates")
         vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
         check_faces(faces, len(vertices), path)
+        return MeshGeometry.smoothed(vertices, faces, normal_sigma, lookup_sigma, **kwargs)
+
+    @staticmethod
+    def smoothed(vertices: np.ndarray, faces: np.ndarray, normal_sigma: float = 0.0, lookup_sigma: float = 0.0,
+                 **kwargs) -> "MeshGeometry":
+        """The mesh ``(V,3)`` vertices, ``(F,3)`` faces with its vertex normals smoothed as :meth:`from_file`
+        says."""
+        vertices = np.asarray(vertices, dtype=np.float64)
         if normal_sigma > 0 or lookup_sigma > 0:
             diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0)))
             raw = vertex_normals(vertices, faces)
