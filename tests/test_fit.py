@@ -20,7 +20,7 @@ from nefii.fit.config import FitConfig, config_from_dict, config_to_dict, resolv
 from nefii.fit.distributed import DistContext, local_device
 from nefii.fit.losses import SecondaryHitBuffer, SmoothnessPrior, smoothness
 from nefii.fit.path_trace import SurfacePoints
-from nefii.fit.policies import Alternation, RoughnessWarmup
+from nefii.fit.policies import Alternation, PriorFade, RoughnessWarmup
 from nefii.fit.session import prepare_fit
 
 
@@ -162,6 +162,16 @@ def test_policies():
     a = Alternation(every=10)
     assert [s for s in range(30) if a.unobserved(s)] == [9, 19, 29]
     assert not any(Alternation(every=10, enabled=False).unobserved(s) for s in range(30))
+    f = PriorFade(start=10, end=30, final=0.2)
+    assert [f.factor(s) for s in (0, 9, 10, 20, 30, 50)] == pytest.approx([1, 1, 1, 0.6, 0.2, 0.2])
+    assert PriorFade(10, 30).factor(25) == 1.0                  # final 1: constant
+
+
+def test_a_saved_config_without_the_fade_reads_back_as_a_constant_prior():
+    from nefii.fit.config import FitConfig, config_to_dict, saved_config_from_dict
+    old = config_to_dict(FitConfig())
+    del old["smooth_albedo_end"]
+    assert saved_config_from_dict(old).smooth_albedo_end == 1.0 and FitConfig().smooth_albedo_end == 0.0
 
 
 def test_smoothness_prior_compares_neighbours_in_the_tangent_plane():

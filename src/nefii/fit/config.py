@@ -114,6 +114,11 @@ class FitConfig:
     smooth_albedo: Annotated[float, Range(0)] = 0.005
     """weight of an L1 prior between the albedo at a point and at a jittered neighbour (0: off, as the paper):
     keeps the hash grid from memorising Monte Carlo noise"""
+    smooth_albedo_end: Annotated[float, Range(0, 1)] = 0.0
+    """the albedo prior's weight at the last step, as a fraction of ``smooth_albedo``: it falls linearly from
+    the end of the roughness warm-up (1: constant). Early on the prior keeps the light's ambiguity out of the
+    albedo while the light settles; faded, it stops flattening texture (docs/experiments.md, 2026-11-27, fourth
+    session)"""
     smooth_radius: Annotated[float, Range(0, 1)] = 0.01
     """jitter of the smoothness prior, as a fraction of the scene's bounding-box diagonal"""
     light_prior: Annotated[float, Range(0)] = 2e-4
@@ -246,9 +251,10 @@ def config_from_dict(values: dict[str, Any]) -> FitConfig:
 def saved_config_from_dict(values: dict[str, Any]) -> FitConfig:
     """A config a run saved: a setting missing from it reads back as the behaviour the run was fitted with,
     not today's default (the official BRDF before ``brdf`` existed; Eq. 8 training all of the material before
-    ``unobserved_material`` existed; no light prior before ``light_prior`` existed)."""
+    ``unobserved_material`` existed; no light prior before ``light_prior`` existed; a constant albedo prior before
+    ``smooth_albedo_end`` existed)."""
     return config_from_dict({"brdf": {"diffuse": "lambert", "shadowing": "schlick"},
-                             "unobserved_material": "all", "light_prior": 0.0, **values})
+                             "unobserved_material": "all", "light_prior": 0.0, "smooth_albedo_end": 1.0, **values})
 
 
 def config_to_dict(cfg: FitConfig) -> dict[str, Any]:

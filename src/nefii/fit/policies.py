@@ -16,6 +16,20 @@ class RoughnessWarmup:
 
 
 @dataclass(frozen=True)
+class PriorFade:
+    """A prior's weight factor: 1 until step ``start``, then falling linearly to ``final`` at step ``end``."""
+
+    start: int
+    end: int
+    final: float = 1.0
+
+    def factor(self, step: int) -> float:
+        if step < self.start:
+            return 1.0
+        return 1.0 - (1.0 - self.final) * min(1.0, (step - self.start) / max(self.end - self.start, 1))
+
+
+@dataclass(frozen=True)
 class Alternation:
     """Every ``every``-th step trains on unobserved rays (Eq. 8) instead of observed ones (Eq. 7)."""
 

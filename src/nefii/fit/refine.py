@@ -166,7 +166,8 @@ class Refiner:
         cfg, fit_cfg, model, sdf, g = self.cfg, self.fit_cfg, self.model, self.sdf, self.generator
         if self.mesh is None or self.step % cfg.remesh_every == 0:
             self.mesh = self.remesh()
-            self.prior = SmoothnessPrior(fit_cfg.smooth_albedo, fit_cfg.smooth_radius * self.mesh.scale)
+            self.prior = SmoothnessPrior(fit_cfg.smooth_albedo * fit_cfg.smooth_albedo_end,   # as the fit ended
+                                         fit_cfg.smooth_radius * self.mesh.scale)
         idx = torch.randint(len(self.rays), (cfg.batch_pixels,), generator=g, device=self.device)
         o_w, d = self.rays.origins[idx], self.rays.directions[idx]
         hit = self.mesh.intersect(Rays(o_w, d))

@@ -29,7 +29,7 @@ from .losses import (Gains, LossTerms, SecondaryHitBuffer, SmoothnessPrior, obse
 from .model import NeFIIModel, decode_material
 from .path_trace import SurfacePoints, Transport, path_trace, sample_directions
 from .pixels import Pixels
-from .policies import Alternation, LightSolveSchedule, RoughnessWarmup
+from .policies import Alternation, LightSolveSchedule, PriorFade, RoughnessWarmup
 
 LIGHT_SOLVE_SAMPLES = 32
 """estimator samples per pixel when the light's amplitudes are solved (the solve is rare: its noise is cheap
@@ -83,6 +83,7 @@ class Trainer:
         self.alternation = Alternation(cfg.unobserved_every, cfg.unobserved)
         self.transport = transport_of(cfg)
         self.prior = SmoothnessPrior(cfg.smooth_albedo, cfg.smooth_radius * geometry.scale)
+        self.prior_fade = PriorFade(self.warmup.steps, cfg.steps, cfg.smooth_albedo_end)
         self.coverage = (light_coverage(pixels.points, geometry, cfg.ray_offset * geometry.scale, cfg.seed)
                          if cfg.light_prior > 0 else None)
         solves = cfg.light.kind == "sg" and cfg.loss == "l2_pair"     # what light_solve's quadratic is
@@ -158,7 +159,7 @@ class Trainer:
             if self.prior.active:
                 near = self.prior.neighbours(pts.position, pts.normal, self.generator)
                 smooth = smoothness(material.albedo, decode_material(model, near, pts.lookup_normal, rough).albedo,
-                                    self.prior.weight)
+                                    self.prior.weight * self.prior_fade.factor(step))
             light = None
             if self.coverage is not None:
                 light = unseen_light_prior(*model.env.energy_atoms(), self.coverage, cfg.light_prior)
