@@ -171,3 +171,47 @@ def test_refine_cli_end_to_end(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--geometry GEO" in err and len(err.strip().splitlines()) == 1
     assert not (plain / "refined" / "sdf.pt").exists()
+
+
+def test_a_resumed_refinement_continues_the_same_sequence(tmp_path):
+    """Three steps, a checkpoint, three more in a new Refiner, equal to six uninterrupted (mesh included)."""
+    from fit_fixtures import scene_mesh
+
+    mesh = scene_mesh()
+    geo = MeshGeometry(mesh.vertices, mesh.faces)
+    env, gen, res = scene_env(), torch.Generator().manual_seed(0), 16
+    o_all, d_all, rgb_all, mask_all = [], [], [], []
+    for c2w, K in _views(res, 3):
+        rgb, mask, *_ = render(geo, env, c2w, K, res, gen, spp=4)
+        o, d = pixel_rays(c2w, K, res, res)
+        o_all.append(o.reshape(-1, 3).float())
+        d_all.append(d.reshape(-1, 3).float())
+        rgb_all.append(torch.from_numpy(rgb).reshape(-1, 3))
+        mask_all.append(torch.from_numpy(mask).reshape(-1))
+    P = sum(len(o) for o in o_all)
+    rays = TrainingRays(torch.cat(o_all), torch.cat(d_all), torch.cat(rgb_all), torch.cat(mask_all),
+                        torch.ones(P, dtype=torch.bool), torch.zeros(P, dtype=torch.long))
+    fit_cfg = FitConfig(num_samples=2)
+    cfg = RefineConfig(steps=6, batch_pixels=64, remesh_every=2, remesh_resolution=24, silhouette_samples=8)
+    box = (torch.full((3,), -0.9), torch.full((3,), 0.9))
+
+    def refiner() -> Refiner:
+        return Refiner(cfg, fit_cfg, build_model(fit_cfg, box), sphere_sdf(), Normalization((0.0, 0.0, 0.0), 1.0),
+                       rays, 0.005, 0.04, torch.device("cpu"))
+
+    whole = refiner()
+    for _ in range(6):
+        whole.train_step()
+    first = refiner()
+    for _ in range(3):
+        first.train_step()
+    state = first.state_dict()
+    torch.save(state, tmp_path / "c.pt")
+    second = refiner()
+    second.load_state_dict(torch.load(tmp_path / "c.pt", weights_only=False))
+    for _ in range(3):
+        second.train_step()
+    a, b = whole.state_dict(), second.state_dict()
+    assert a["step"] == b["step"] == 6
+    for part in ("model", "sdf"):
+        assert all(torch.equal(a[part][k], b[part][k]) for k in a[part]), part

@@ -22,9 +22,10 @@ fixed samples, unbiased for the image term's expectation).
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Annotated
 
+import numpy as np
 import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
@@ -156,7 +157,11 @@ class Refiner:
         self.sdf.eval()
         mesh = extract_mesh(self.sdf, self.norm, resolution or self.cfg.remesh_resolution)
         self.sdf.train()
-        return MeshGeometry.smoothed(mesh.vertices, mesh.faces, self.normal_sigma, self.lookup_sigma)
+        return self._cast(mesh.vertices, mesh.faces)
+
+    def _cast(self, vertices: np.ndarray, faces: np.ndarray) -> MeshGeometry:
+        self._arrays = (np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
+        return MeshGeometry.smoothed(*self._arrays, self.normal_sigma, self.lookup_sigma)
 
     def _unit(self, o: Tensor) -> Tensor:
         return self.norm.to_unit(o)
@@ -236,7 +241,8 @@ class Refiner:
     def state_dict(self) -> dict:
         return {"step": self.step, "model": self.model.state_dict(), "sdf": self.sdf.state_dict(),
                 "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
-                "generator": self.generator.get_state(), "config": dataclasses.asdict(self.cfg)}
+                "generator": self.generator.get_state(), "config": dataclasses.asdict(self.cfg),
+                "mesh": None if self.mesh is None else tuple(torch.from_numpy(a) for a in self._arrays)}
 
     def load_state_dict(self, state: dict) -> None:
         self.step = int(state["step"])
@@ -245,4 +251,8 @@ class Refiner:
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["generator"])
-        self.mesh = None                         # re-extracted from the restored SDF at the next step
+        mesh = state.get("mesh")                 # the mesh the rays were cast against: a resumed run goes on the same
+        self.mesh = None if mesh is None else self._cast(mesh[0].numpy(), mesh[1].numpy())
+        if self.mesh is not None:
+            self.prior = SmoothnessPrior(self.fit_cfg.smooth_albedo * self.fit_cfg.smooth_albedo_end,
+                                         self.fit_cfg.smooth_radius * self.mesh.scale)
