@@ -201,6 +201,11 @@ CASES = [
     Case("geometry --device bogus", GEO + " --device bogus", 2, ("--device bogus",)),
     Case("geometry into a fit run", "geometry {scene} --out {run} --preset tiny --quiet", 2,
          ("holds a nefii fit run, not a geometry run",)),
+    # ---- refine
+    Case("refine steps=0", "refine {tmp}/norun --set steps=0", 2, ("steps", "below 1")),
+    Case("refine unknown setting", "refine {tmp}/norun --set stepz=3", 2, ("stepz", "did you mean 'steps'?")),
+    Case("refine where no run is", "refine {tmp}/norun", 2, ("norun", "model.pt", "not found")),
+    Case("refine a fit on a mesh", "refine {run}", 2, ("--geometry GEO",)),
     # ---- eval and relight flags, refused before the run is read
     Case("eval --spp -1", "eval {tmp}/norun --spp -1", 2, ("--spp", "below 1")),
     Case("eval --spp 0", "eval {tmp}/norun --spp 0", 2, ("--spp", "below 1")),
