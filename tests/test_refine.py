@@ -63,7 +63,7 @@ def test_implicit_hit_gradient_moves_the_hit_along_the_ray():
     # raising b by e shrinks the sphere by e: the top hit's z falls by e
     assert abs(float(g[0]) + 1.0) < 1e-3
     n, grad = normal_at(sdf, x)
-    assert torch.allclose(n, torch.tensor([[0.0, 0.0, 1.0]]), atol=1e-4) and abs(float(grad.norm()) - 1) < 1e-3
+    assert torch.allclose(n, torch.tensor([[0.0, 0.0, 1.0]]), atol=1e-4) and abs(float(grad.detach().norm()) - 1) < 1e-3
 
 
 def _views(res: int, n: int):
@@ -72,6 +72,22 @@ def _views(res: int, n: int):
         a = 2 * math.pi * k / n
         eye = torch.tensor([2.2 * math.cos(a), 2.2 * math.sin(a), 0.9 + 0.6 * (k % 2)], dtype=torch.float64)
         yield look_at(eye, torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)), K
+
+
+def _rendered_rays(geo: MeshGeometry, res: int, views: int, spp: int) -> TrainingRays:
+    """Every pixel of :func:`_views` rendered by the fixtures' estimator under :func:`scene_env`."""
+    gen = torch.Generator().manual_seed(0)
+    o_all, d_all, rgb_all, mask_all = [], [], [], []
+    for c2w, K in _views(res, views):
+        rgb, mask, *_ = render(geo, scene_env(), c2w, K, res, gen, spp=spp)
+        o, d = pixel_rays(c2w, K, res, res)
+        o_all.append(o.reshape(-1, 3).float())
+        d_all.append(d.reshape(-1, 3).float())
+        rgb_all.append(torch.from_numpy(rgb).reshape(-1, 3))
+        mask_all.append(torch.from_numpy(mask).reshape(-1))
+    P = sum(len(o) for o in o_all)
+    return TrainingRays(torch.cat(o_all), torch.cat(d_all), torch.cat(rgb_all), torch.cat(mask_all),
+                        torch.ones(P, dtype=torch.bool), torch.zeros(P, dtype=torch.long))
 
 
 def _bump_normal_error(sdf: SDFNetwork, truth: MeshGeometry) -> tuple[float, float]:
@@ -84,7 +100,7 @@ def _bump_normal_error(sdf: SDFNetwork, truth: MeshGeometry) -> tuple[float, flo
     t, _ = newton_along_ray(sdf, o[hit.valid], d[hit.valid], hit.t[hit.valid])
     n, _ = normal_at(sdf, o[hit.valid] + t[:, None] * d[hit.valid])
     cos = (n.detach() * hit.normal[hit.valid]).sum(-1).clamp(-1, 1)
-    apex = sdf.sdf(((RADIUS + BUMP) * axis)[None])
+    apex = sdf.sdf(((RADIUS + BUMP) * axis)[None]).detach()
     return float(torch.rad2deg(torch.arccos(cos)).mean()), float(apex)
 
 
@@ -95,28 +111,17 @@ def test_refinement_grows_the_missing_bump_under_a_known_light():
     normals to 7-9 degrees, the normal prior at the preset's 0.05 halves the pace.)"""
     truth = bumped_sphere()
     geo = MeshGeometry(truth.vertices, truth.faces)
-    env, gen, res = scene_env(), torch.Generator().manual_seed(0), 40
-    o_all, d_all, rgb_all, mask_all = [], [], [], []
-    for c2w, K in _views(res, 10):
-        rgb, mask, *_ = render(geo, env, c2w, K, res, gen, spp=32)
-        o, d = pixel_rays(c2w, K, res, res)
-        o_all.append(o.reshape(-1, 3).float())
-        d_all.append(d.reshape(-1, 3).float())
-        rgb_all.append(torch.from_numpy(rgb).reshape(-1, 3))
-        mask_all.append(torch.from_numpy(mask).reshape(-1))
-    P = sum(len(o) for o in o_all)
-    rays = TrainingRays(torch.cat(o_all), torch.cat(d_all), torch.cat(rgb_all), torch.cat(mask_all),
-                        torch.ones(P, dtype=torch.bool), torch.zeros(P, dtype=torch.long))
+    env = scene_env()
+    rays = _rendered_rays(geo, res=40, views=10, spp=32)
 
     fit_cfg = FitConfig(num_samples=4, indirect=False, smooth_albedo=0.0, light_solve_every=0)
     box = (torch.full((3,), -0.6), torch.full((3,), 0.6))
     model = build_model(fit_cfg, box)
     model = NeFIIModel(TrueMaterial(), model.cache, model.env.__class__(num_lobes=3))
-    sg = env
     with torch.no_grad():
-        model.env.axis_raw.copy_(sg.axis)
-        model.env.log_sharpness.copy_(sg.sharpness.log())
-        model.env.log_amplitude.copy_(sg.amplitude.log())
+        model.env.axis_raw.copy_(env.axis)
+        model.env.log_sharpness.copy_(env.sharpness.log())
+        model.env.log_amplitude.copy_(env.amplitude.log())
     sdf = sphere_sdf()
     before = _bump_normal_error(sdf, geo)
     cfg = RefineConfig(steps=200, batch_pixels=512, lr_fields=0.0, remesh_every=50, remesh_resolution=64,
@@ -178,19 +183,7 @@ def test_a_resumed_refinement_continues_the_same_sequence(tmp_path):
     from fit_fixtures import scene_mesh
 
     mesh = scene_mesh()
-    geo = MeshGeometry(mesh.vertices, mesh.faces)
-    env, gen, res = scene_env(), torch.Generator().manual_seed(0), 16
-    o_all, d_all, rgb_all, mask_all = [], [], [], []
-    for c2w, K in _views(res, 3):
-        rgb, mask, *_ = render(geo, env, c2w, K, res, gen, spp=4)
-        o, d = pixel_rays(c2w, K, res, res)
-        o_all.append(o.reshape(-1, 3).float())
-        d_all.append(d.reshape(-1, 3).float())
-        rgb_all.append(torch.from_numpy(rgb).reshape(-1, 3))
-        mask_all.append(torch.from_numpy(mask).reshape(-1))
-    P = sum(len(o) for o in o_all)
-    rays = TrainingRays(torch.cat(o_all), torch.cat(d_all), torch.cat(rgb_all), torch.cat(mask_all),
-                        torch.ones(P, dtype=torch.bool), torch.zeros(P, dtype=torch.long))
+    rays = _rendered_rays(MeshGeometry(mesh.vertices, mesh.faces), res=16, views=3, spp=4)
     fit_cfg = FitConfig(num_samples=2)
     cfg = RefineConfig(steps=6, batch_pixels=64, remesh_every=2, remesh_resolution=24, silhouette_samples=8)
     box = (torch.full((3,), -0.9), torch.full((3,), 0.9))
