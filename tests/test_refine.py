@@ -125,8 +125,8 @@ def test_refinement_grows_the_missing_bump_under_a_known_light():
     sdf = sphere_sdf()
     before = _bump_normal_error(sdf, geo)
     cfg = RefineConfig(steps=200, batch_pixels=512, lr_fields=0.0, remesh_every=50, remesh_resolution=64,
-                       silhouette_samples=24, lr_sdf=1e-2, normal_smoothness=0.0)
-    refiner = Refiner(cfg, fit_cfg, model, sdf, Normalization((0.0, 0.0, 0.0), 1.0), rays, 0.0, 0.0,
+                       silhouette_samples=24, normal_smoothness=0.0)
+    refiner = Refiner(cfg, fit_cfg, model, sdf, Normalization((0.0, 0.0, 0.0), 1.0), rays, 0.0, 0.0, (1e-2, 1e-2),
                       torch.device("cpu"))
     for _ in range(cfg.steps):
         refiner.train_step()
@@ -190,7 +190,7 @@ def test_a_resumed_refinement_continues_the_same_sequence(tmp_path):
 
     def refiner() -> Refiner:
         return Refiner(cfg, fit_cfg, build_model(fit_cfg, box), sphere_sdf(), Normalization((0.0, 0.0, 0.0), 1.0),
-                       rays, 0.005, 0.04, torch.device("cpu"))
+                       rays, 0.005, 0.04, (1e-2, 1e-3), torch.device("cpu"))
 
     whole = refiner()
     for _ in range(6):

@@ -73,8 +73,9 @@ def run(args: argparse.Namespace) -> int:
     scene, line = training_images(load_scene(fitted.data, "train"), fitted.config.max_image_side)
     rays = TrainingRays.of(scene)
     model = fitted.model.train()
+    g = loaded.config
     refiner = Refiner(cfg, fitted.config, model, loaded.sdf, loaded.normalization, rays, source.normal_sigma,
-                      source.lookup_sigma, device)
+                      source.lookup_sigma, (g.lr * g.lr_decay, g.lr_networks * g.lr_decay), device)
     ckpt_dir = out / "checkpoints"
     if args.resume:
         ckpt = load_latest_checkpoint(ckpt_dir, warn=lambda s: print(f"nefii refine: warning: {s}"))
@@ -90,9 +91,9 @@ def run(args: argparse.Namespace) -> int:
     bar = tqdm(total=cfg.steps, initial=refiner.step, disable=args.quiet, desc="refine", unit="step")
     while refiner.step < cfg.steps:
         terms = refiner.train_step()
-        sums["silhouette"] += float(terms.silhouette)
-        sums["eikonal"] += float(terms.eikonal)
-        sums["image"] += 0.0 if terms.image is None else float(terms.image.total)
+        sums["silhouette"] += terms.silhouette.item()
+        sums["eikonal"] += terms.eikonal.item()
+        sums["image"] += 0.0 if terms.image is None else terms.image.total.item()
         sums["hits"] += terms.hits
         bar.update(1)
         if time.monotonic() - last >= cfg.checkpoint_every_s and refiner.step < cfg.steps:

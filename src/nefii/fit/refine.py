@@ -10,7 +10,7 @@ and image loss (Eq. 7), IDR-style:
   differentiated twice through the SDF (:func:`~nefii.sdf.implicit.implicit_hit`, :func:`~nefii.sdf.implicit.normal_at`);
 - the estimator's directions, densities and secondary rays from the detached normal, the mesh hit and the current
   mesh (:func:`nefii.fit.path_trace.path_trace`'s ``shading_normal``);
-- IDR's silhouette loss on the masks, the eikonal term and the geometry stage's tangent-plane normal prior.
+- IDR's silhouette loss on the rays the surface gets wrong (a hit outside the mask, a miss inside it), the eikonal term and the geometry stage's tangent-plane normal prior.
 
 Gradients dropped (what they bias): visibility and the secondary hits are not differentiated (a shadow's edge
 or an occluder's position does not move the surface: a lid over a hollow is not opened by the shading of the
@@ -53,8 +53,10 @@ class RefineConfig:
     """refinement steps"""
     batch_pixels: Annotated[int, Range(1)] = 1024
     """training pixels per step (inside and outside the masks)"""
-    lr_sdf: Annotated[float, Range(0, 10)] = 2e-3
-    """Adam learning rate of the SDF's parameters (the geometry stage trains its hash grid at 1e-2)"""
+    lr_sdf: Annotated[float, Range(0, 10)] = 1.0
+    """the SDF's learning rates (its hash table's, its MLP's) as a multiple of the rates the geometry stage ended
+    at: a fresh Adam moves every parameter by about its rate a step, and at the stage's starting rates the
+    SDF's MLP random-walked and the bowl's surface degraded"""
     lr_fields: Annotated[float, Range(0, 10)] = 1.0
     """the material's, cache's and light's learning rates as a multiple of the rates the fit ended at"""
     lr_decay: Annotated[float, Range(0, 1, lo_open=True)] = 0.1
@@ -136,13 +138,20 @@ class Refiner:
     """The SDF, the material, the cache and the light optimised together (see the module's docstring)."""
 
     def __init__(self, cfg: RefineConfig, fit_cfg: FitConfig, model: NeFIIModel, sdf: SDFNetwork, norm: Normalization,
-                 rays: TrainingRays, normal_sigma: float, lookup_sigma: float, device: torch.device) -> None:
+                 rays: TrainingRays, normal_sigma: float, lookup_sigma: float, sdf_rates: tuple[float, float],
+                 device: torch.device) -> None:
+        """``sdf_rates``: the Adam rates of the SDF's hash table and of the rest of it as the geometry stage ended
+        (``cfg.lr_sdf`` scales them)."""
         self.cfg, self.fit_cfg, self.model, self.sdf, self.norm, self.rays = cfg, fit_cfg, model, sdf, norm, rays
         self.normal_sigma, self.lookup_sigma, self.device = normal_sigma, lookup_sigma, device
         sdf.requires_grad_(True).train()
         final = fit_cfg.lr_decay * cfg.lr_fields
         groups = model.param_groups(fit_cfg.lr * final, fit_cfg.lr_light * final, fit_cfg.lr_light_shape * final)
-        groups.append({"params": list(sdf.parameters()), "lr": cfg.lr_sdf})
+        table = [p for name, p in sdf.named_parameters() if name.startswith("encoding.")]
+        ids = {id(p) for p in table}
+        groups.append({"params": [p for p in sdf.parameters() if id(p) not in ids], "lr": sdf_rates[1] * cfg.lr_sdf})
+        if table:
+            groups.append({"params": table, "lr": sdf_rates[0] * cfg.lr_sdf})
         self.optimizer = torch.optim.Adam(groups)
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, cfg.lr_decay ** (1.0 / cfg.steps))
         self.generator = torch.Generator(device=device).manual_seed(cfg.seed)
@@ -214,7 +223,10 @@ class Refiner:
         # ---- silhouettes and the eikonal term
         sil = zero
         if self.rays.mask is not None and cfg.silhouette > 0:
+            # IDR's rule: only rays the surface gets wrong (a hit outside the mask, a miss inside it); on a ray that
+            # hits inside the mask, the loss would keep pushing min f down and thicken every thin wall
             near, far, through = sphere_bounds(o_u, d)
+            through = through & ~(valid & self.rays.mask[idx])
             if through.any():
                 sil = silhouette_loss(sdf, o_u[through], d[through], near[through], far[through],
                                       self.rays.mask[idx][through], cfg.silhouette_samples, cfg.silhouette_sharpness, g)
