@@ -82,8 +82,8 @@ def run(args: argparse.Namespace) -> int:
         if ckpt is not None:
             ckpt.restore(refiner.load_state_dict, "this refinement")
             print(f"nefii refine: resumed from {ckpt.path} at step {refiner.step}")
-    print("nefii refine: warning: experimental; on the built-in scenes it has not yet improved the geometry or the "
-          "materials (benchmarks/results/geometry.md): keep model_unrefined.pt")
+    print("nefii refine: warning: experimental; on the built-in scenes it has so far opened holes and cost the "
+          "materials several dB (benchmarks/results/geometry.md); the fit's own model stays in model_unrefined.pt")
     print(f"nefii refine: {threads} threads; {len(scene)} views {scene.width}x{scene.height} from {scene.root}"
           + (f" ({line})" if line else "") + f"; the SDF of {source.folder}"
           + ("" if scene.masks is not None else "; no masks: the silhouette term is off"))
