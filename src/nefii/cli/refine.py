@@ -92,7 +92,13 @@ def run(args: argparse.Namespace) -> int:
     sums = {"silhouette": 0.0, "eikonal": 0.0, "image": 0.0, "hits": 0.0}
     bar = tqdm(total=cfg.steps, initial=refiner.step, disable=args.quiet, desc="refine", unit="step")
     while refiner.step < cfg.steps:
-        terms = refiner.train_step()
+        try:
+            terms = refiner.train_step()
+        except FloatingPointError as e:
+            bar.close()
+            print(f"nefii refine: error: {e}; the run's model.pt is untouched"
+                  + (f", checkpoints in {ckpt_dir}" if any(ckpt_dir.iterdir()) else ""))
+            return 1
         sums["silhouette"] += terms.silhouette.item()
         sums["eikonal"] += terms.eikonal.item()
         sums["image"] += 0.0 if terms.image is None else terms.image.total.item()

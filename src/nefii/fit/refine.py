@@ -32,6 +32,7 @@ from torch import Tensor
 
 from ..config_tools import Range, validate
 from ..data.scene import SceneData
+from ..optim import descend
 from ..raycast import MeshGeometry, Rays
 from ..sdf.extract import extract_mesh
 from ..sdf.implicit import implicit_hit, newton_along_ray, normal_at, silhouette_loss
@@ -240,12 +241,7 @@ class Refiner:
 
     def train_step(self) -> RefineTerms:
         terms = self.loss()
-        if not bool(torch.isfinite(terms.total)):
-            raise FloatingPointError(f"refinement step {self.step}: the loss is not finite ({float(terms.total)})")
-        self.optimizer.zero_grad(set_to_none=True)
-        terms.total.backward()
-        self.optimizer.step()
-        self.scheduler.step()
+        descend(terms.total, self.optimizer, self.scheduler, f"refinement step {self.step}: the loss")
         self.step += 1
         return terms
 

@@ -20,6 +20,7 @@ from tqdm import tqdm
 from ..camera import pixel_rays
 from ..data.scene import SceneData
 from ..io.checkpoints import LoadedCheckpoint, save_checkpoint
+from ..optim import descend
 from .config import GeometryConfig
 from .losses import GeometryLoss, geometry_loss, level_set_area, normal_variation
 from .model import NeuSModel, render_rays
@@ -135,12 +136,7 @@ class GeometryTrainer:
     def train_step(self) -> GeometryLoss:
         self.model.sdf.set_active_levels(self.active_levels(self.step))
         terms = self.objective.loss(self.model, self.step, self.generator)
-        if not bool(torch.isfinite(terms.total)):
-            raise FloatingPointError(f"step {self.step}: geometry loss is not finite ({terms.total.item()})")
-        self.optimizer.zero_grad(set_to_none=True)
-        terms.total.backward()
-        self.optimizer.step()
-        self.scheduler.step()
+        descend(terms.total, self.optimizer, self.scheduler, f"step {self.step}: geometry loss")
         self.step += 1
         return terms
 
