@@ -263,7 +263,7 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
         trainer.train_step()
     fit_s = time.time() - t0
     model.eval()
-    fitted = FittedRun(out, cfg, model, data, session.source.mesh, session.source)
+    fitted = FittedRun(out, cfg, model, data, session.source.mesh, session.source, session.box)
     test = load_scene(data, "test")
     means = evaluate_run(fitted, test, out / "eval", eval_spp, torch.Generator(device=device).manual_seed(0))["masked"]
     means["fit_s"] = fit_s

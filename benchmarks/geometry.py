@@ -55,12 +55,18 @@ def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[st
         nefii("geometry", str(data), "--out", str(out), "--masks", masks, "--quiet", *resume, *sets)
     stats = json.loads((out / "geometry_stats.json").read_text())
     d = mesh_distance(trimesh.load(out / "mesh.ply", force="mesh"), trimesh.load(data / "mesh.ply", force="mesh"))
-    # a resumed run's wall time covers only its last session: scaled to all steps, and marked
+    wall_min, resumed = all_steps_wall_min(stats)
+    return {"scene": name, "masks": masks, "chamfer_rel": d.chamfer_rel, "normal_deg": d.normal_deg, "missed": d.missed,
+            "wall_min": wall_min, "resumed": resumed, "peak_gib": stats["peak_rss_gib"],
+            "folder": out, "code": code_version()}
+
+
+def all_steps_wall_min(stats: dict) -> tuple[float, bool]:
+    """Minutes for all of a run's steps, and whether it was resumed: a resumed run's stats time only its last
+    session, which is scaled to all its steps (and marked)."""
     done = stats.get("steps_this_session", stats["steps"])
     wall = stats.get("wall_s_this_session", stats.get("wall_s")) * stats["steps"] / max(done, 1)
-    return {"scene": name, "masks": masks, "chamfer_rel": d.chamfer_rel, "normal_deg": d.normal_deg, "missed": d.missed,
-            "wall_min": wall / 60, "resumed": done < stats["steps"], "peak_gib": stats["peak_rss_gib"],
-            "folder": out, "code": code_version()}
+    return wall / 60, done < stats["steps"]
 
 
 def fit_on(data: Path, geo: Path, threads: int, sets: list[str], tag: str) -> dict:
@@ -96,11 +102,9 @@ def refine_on(data: Path, geo: Path, threads: int, tag: str) -> dict:
     stats = json.loads((run / "refined" / "refine_stats.json").read_text())
     d = mesh_distance(trimesh.load(run / "refined" / "mesh.ply", force="mesh"),
                       trimesh.load(data / "mesh.ply", force="mesh"))
-    done = stats["steps_this_session"]
+    wall_min, resumed = all_steps_wall_min(stats)
     return {"metrics": json.loads((run / "eval" / "metrics.json").read_text())["masked"], "chamfer_rel": d.chamfer_rel,
-            "normal_deg": d.normal_deg, "missed": d.missed,
-            "wall_min": stats["wall_s_this_session"] * stats["steps"] / max(done, 1) / 60,
-            "resumed": done < stats["steps"]}
+            "normal_deg": d.normal_deg, "missed": d.missed, "wall_min": wall_min, "resumed": resumed}
 
 
 def albedo_on(run: Path, mesh: Path) -> float:

@@ -87,7 +87,7 @@ def _rendered_rays(geo: MeshGeometry, res: int, views: int, spp: int) -> Trainin
         mask_all.append(torch.from_numpy(mask).reshape(-1))
     P = sum(len(o) for o in o_all)
     return TrainingRays(torch.cat(o_all), torch.cat(d_all), torch.cat(rgb_all), torch.cat(mask_all),
-                        torch.ones(P, dtype=torch.bool), torch.zeros(P, dtype=torch.long))
+                        torch.ones(P, dtype=torch.bool))
 
 
 def _bump_normal_error(sdf: SDFNetwork, truth: MeshGeometry) -> tuple[float, float]:

@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 
 import torch
-import trimesh
 from tqdm import tqdm
 
 from ..config_tools import apply_overrides, dataclass_from_dict
@@ -25,9 +24,8 @@ from ..data.downscale import training_images
 from ..errors import InputError
 from ..fit.outputs import load_run, write_outputs
 from ..fit.refine import RefineConfig, Refiner, TrainingRays
-from ..io.atomic import write_text_atomic, atomic_path
+from ..io.atomic import atomic_path, write_text_atomic
 from ..io.checkpoints import load_latest_checkpoint, save_checkpoint
-from ..io.safe_load import load_tensors
 from ..sdf.outputs import MESH_FILE, load_sdf, save_sdf
 from .common import set_threads
 
@@ -108,16 +106,14 @@ def run(args: argparse.Namespace) -> int:
             save_checkpoint(ckpt_dir, refiner.step, refiner.state_dict())
             last = time.monotonic()
     bar.close()
-    refiner.sdf.eval()
-    mesh = refiner.remesh(cfg.mesh_resolution)
+    mesh = refiner.zero_set(cfg.mesh_resolution)
     save_sdf(out, loaded.config, refiner.sdf, loaded.normalization, f"refined from {source.folder} by nefii refine")
     with atomic_path(out / MESH_FILE) as tmp:
-        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(tmp, file_type="ply")
+        mesh.export(tmp, file_type="ply")
     if not (folder / UNREFINED).is_file():
         shutil.copy2(folder / "model.pt", folder / UNREFINED)
-    box = tuple(load_tensors(folder / UNREFINED)["box"])
     refined = dataclasses.replace(source, mesh=(out / MESH_FILE).resolve(), folder=out.resolve())
-    write_outputs(folder, fitted.config, model.eval(), box, fitted.data, refined)
+    write_outputs(folder, fitted.config, model.eval(), fitted.box, fitted.data, refined)
     n = max(refiner.step - step0, 1)
     wall = time.time() - t0
     stats = {"steps": refiner.step, "steps_this_session": refiner.step - step0, "wall_s_this_session": wall,

@@ -45,6 +45,8 @@ class FittedRun:
     """the frozen geometry's triangle mesh"""
     geometry: GeometrySource
     """where the geometry came from (mesh or a nefii geometry folder, and how it is cast)"""
+    box: tuple[torch.Tensor, torch.Tensor]
+    """corners of the geometry's bounding box the fields were built over (CPU)"""
 
     def open_geometry(self):
         """The run's geometry for rays (sphere-traced SDF in ``sdf`` mode, else the mesh)."""
@@ -116,7 +118,8 @@ def load_run(folder: str | Path, device: torch.device | str = "cpu") -> FittedRu
             GeometrySource("mesh", Path(blob["mesh"]))
     except Exception as e:
         raise InputError(path, f"not a readable nefii model ({type(e).__name__}: {e})") from None
-    return FittedRun(folder, cfg, model.to(device).eval(), Path(blob["data"]), Path(blob["mesh"]), source)
+    return FittedRun(folder, cfg, model.to(device).eval(), Path(blob["data"]), Path(blob["mesh"]), source,
+                     tuple(blob["box"]))
 
 
 def source_config(source: GeometrySource):

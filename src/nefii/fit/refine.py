@@ -27,7 +27,8 @@ from typing import Annotated
 
 import numpy as np
 import torch
-from jaxtyping import Bool, Float, Int
+import trimesh
+from jaxtyping import Bool, Float
 from torch import Tensor
 
 from ..config_tools import Range, validate
@@ -105,20 +106,18 @@ class TrainingRays:
     """the object masks; None without masks"""
     usable: Bool[Tensor, " P"]
     """not clipped (their colour may enter the image loss)"""
-    view: Int[Tensor, " P"]
 
     @staticmethod
     def of(scene: SceneData) -> "TrainingRays":
-        o, d, views = [], [], []
+        o, d = [], []
         for v in range(len(scene)):
             ov, dv = view_rays(scene, v)
             o.append(ov.reshape(-1, 3))
             d.append(dv.reshape(-1, 3))
-            views.append(torch.full((scene.height * scene.width,), v, dtype=torch.long))
         usable = torch.ones(len(scene) * scene.height * scene.width, dtype=torch.bool) if scene.clipped is None \
             else ~scene.clipped.reshape(-1)
         return TrainingRays(torch.cat(o), torch.cat(d), scene.images.reshape(-1, 3).float(),
-                            None if scene.masks is None else scene.masks.reshape(-1), usable, torch.cat(views))
+                            None if scene.masks is None else scene.masks.reshape(-1), usable)
 
     def __len__(self) -> int:
         return len(self.origins)
@@ -148,7 +147,7 @@ class Refiner:
         sdf.requires_grad_(True).train()
         final = fit_cfg.lr_decay * cfg.lr_fields
         groups = model.param_groups(fit_cfg.lr * final, fit_cfg.lr_light * final, fit_cfg.lr_light_shape * final)
-        table = [p for name, p in sdf.named_parameters() if name.startswith("encoding.")]
+        table = list(sdf.encoding.parameters())                     # a hash grid's table (a Fourier encoding: none)
         ids = {id(p) for p in table}
         groups.append({"params": [p for p in sdf.parameters() if id(p) not in ids], "lr": sdf_rates[1] * cfg.lr_sdf})
         if table:
@@ -158,35 +157,35 @@ class Refiner:
         self.generator = torch.Generator(device=device).manual_seed(cfg.seed)
         self.transport = transport_of(fit_cfg)
         self.mesh: MeshGeometry | None = None
-        self.prior: SmoothnessPrior | None = None
+        """set with :attr:`prior` by :meth:`_use_mesh` at the first step"""
+        self.prior: SmoothnessPrior
         self.step = 0
 
     # ---- the mesh the rays are cast against
-    def remesh(self, resolution: int | None = None) -> MeshGeometry:
-        """The SDF's zero set now, as the fit casts it (vertex normals smoothed as the run's source says)."""
-        self.sdf.eval()
-        mesh = extract_mesh(self.sdf, self.norm, resolution or self.cfg.remesh_resolution)
-        self.sdf.train()
-        return self._cast(mesh.vertices, mesh.faces)
+    def zero_set(self, resolution: int) -> trimesh.Trimesh:
+        """The SDF's zero set now, in world coordinates (marching cubes at ``resolution``)."""
+        return extract_mesh(self.sdf, self.norm, resolution)
 
-    def _cast(self, vertices: np.ndarray, faces: np.ndarray) -> MeshGeometry:
+    def _use_mesh(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+        """Cast rays against this mesh from now on (vertex normals smoothed as the run's source says), with the
+        albedo prior at the weight the fit ended with, on its scale."""
         self._arrays = (np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
-        return MeshGeometry.smoothed(*self._arrays, self.normal_sigma, self.lookup_sigma)
-
-    def _unit(self, o: Tensor) -> Tensor:
-        return self.norm.to_unit(o)
+        self.mesh = MeshGeometry.smoothed(*self._arrays, self.normal_sigma, self.lookup_sigma)
+        fit_cfg = self.fit_cfg
+        self.prior = SmoothnessPrior(fit_cfg.smooth_albedo * fit_cfg.smooth_albedo_end,
+                                     fit_cfg.smooth_radius * self.mesh.scale)
 
     # ---- one step
     def loss(self) -> RefineTerms:
         cfg, fit_cfg, model, sdf, g = self.cfg, self.fit_cfg, self.model, self.sdf, self.generator
         if self.mesh is None or self.step % cfg.remesh_every == 0:
-            self.mesh = self.remesh()
-            self.prior = SmoothnessPrior(fit_cfg.smooth_albedo * fit_cfg.smooth_albedo_end,   # as the fit ended
-                                         fit_cfg.smooth_radius * self.mesh.scale)
+            zero_set = self.zero_set(cfg.remesh_resolution)
+            self._use_mesh(zero_set.vertices, zero_set.faces)
         idx = torch.randint(len(self.rays), (cfg.batch_pixels,), generator=g, device=self.device)
         o_w, d = self.rays.origins[idx], self.rays.directions[idx]
+        mask = None if self.rays.mask is None else self.rays.mask[idx]
         hit = self.mesh.intersect(Rays(o_w, d))
-        o_u = self._unit(o_w)
+        o_u = self.norm.to_unit(o_w)
         zero = o_u.new_zeros(())
 
         # ---- first hits on the SDF's zero
@@ -197,8 +196,8 @@ class Refiner:
             t_u[valid] = t_new
             valid[valid.clone()] = (residual < 1e-3) & (t_new > 0)
         obj = valid & self.rays.usable[idx]
-        if self.rays.mask is not None:
-            obj = obj & self.rays.mask[idx]
+        if mask is not None:
+            obj = obj & mask
         image, normal_prior, eik_hits = None, zero, zero
         hits = int(obj.sum())
         if hits:
@@ -211,7 +210,7 @@ class Refiner:
             traced = path_trace(model, self.mesh, pts, material, fit_cfg.num_samples, g, self.transport,
                                 shading_normal=n)
             smooth = None
-            if self.prior is not None and self.prior.active:
+            if self.prior.active:
                 near = self.prior.neighbours(pts.position, pts.normal, g)
                 smooth = smoothness(material.albedo, decode_material(model, near, pts.lookup_normal).albedo,
                                     self.prior.weight)
@@ -223,14 +222,14 @@ class Refiner:
 
         # ---- silhouettes and the eikonal term
         sil = zero
-        if self.rays.mask is not None and cfg.silhouette > 0:
+        if mask is not None and cfg.silhouette > 0:
             # IDR's rule: only rays the surface gets wrong (a hit outside the mask, a miss inside it); on a ray that
             # hits inside the mask, the loss would keep pushing min f down and thicken every thin wall
             near, far, through = sphere_bounds(o_u, d)
-            through = through & ~(valid & self.rays.mask[idx])
+            through = through & ~(valid & mask)
             if through.any():
-                sil = silhouette_loss(sdf, o_u[through], d[through], near[through], far[through],
-                                      self.rays.mask[idx][through], cfg.silhouette_samples, cfg.silhouette_sharpness, g)
+                sil = silhouette_loss(sdf, o_u[through], d[through], near[through], far[through], mask[through],
+                                      cfg.silhouette_samples, cfg.silhouette_sharpness, g)
         u = torch.randn(cfg.batch_pixels // 2, 3, generator=g, device=self.device)
         u = u / u.norm(dim=-1, keepdim=True) * torch.rand(len(u), 1, generator=g, device=self.device) ** (1 / 3)
         _, grad_free, _ = sdf.with_gradient(u, create_graph=True)
@@ -260,7 +259,5 @@ class Refiner:
         self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["generator"])
         mesh = state.get("mesh")                 # the mesh the rays were cast against: a resumed run goes on the same
-        self.mesh = None if mesh is None else self._cast(mesh[0].numpy(), mesh[1].numpy())
-        if self.mesh is not None:
-            self.prior = SmoothnessPrior(self.fit_cfg.smooth_albedo * self.fit_cfg.smooth_albedo_end,
-                                         self.fit_cfg.smooth_radius * self.mesh.scale)
+        if mesh is not None:
+            self._use_mesh(mesh[0].numpy(), mesh[1].numpy())
