@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
+import pytest
 import torch
 import trimesh
 from torch import nn
@@ -16,9 +18,12 @@ from nefii.fields.encodings import HashGrid
 from nefii.fit.config import FitConfig
 from nefii.fit.model import NeFIIModel
 from nefii.fit.build import build_model
-from nefii.fit.refine import RefineConfig, Refiner, TrainingRays
+from nefii.fit.refine import GeometryAnchor, RefineConfig, Refiner, TrainingRays
 from nefii.raycast import MeshGeometry, Rays
 from nefii.render.brdf import Material
+from nefii.sdf.config import resolve_geometry_config
+from nefii.sdf.model import NeuSModel
+from nefii.sdf.train import ImageObjective
 from nefii.sdf.implicit import implicit_hit, newton_along_ray, normal_at
 from nefii.sdf.networks import SDFNetwork
 from nefii.sdf.normalization import Normalization
@@ -124,7 +129,7 @@ def test_refinement_grows_the_missing_bump_under_a_known_light():
         model.env.log_amplitude.copy_(env.amplitude.log())
     sdf = sphere_sdf()
     before = _bump_normal_error(sdf, geo)
-    cfg = RefineConfig(steps=200, batch_pixels=512, lr_fields=0.0, remesh_every=50, remesh_resolution=64,
+    cfg = RefineConfig(steps=200, batch_pixels=512, lr_fields=0.0, lr_sdf=1.0, remesh_every=50, remesh_resolution=64,
                        silhouette_samples=24, normal_smoothness=0.0)
     refiner = Refiner(cfg, fit_cfg, model, sdf, Normalization((0.0, 0.0, 0.0), 1.0), rays, 0.0, 0.0, (1e-2, 1e-2),
                       torch.device("cpu"))
@@ -177,9 +182,46 @@ def test_refine_cli_end_to_end(tmp_path, capsys):
     assert "--geometry GEO" in err and len(err.strip().splitlines()) == 1
     assert not (plain / "refined" / "sdf.pt").exists()
 
+def test_refine_keeps_the_geometry_stage_objective(tmp_path, capsys):
+    """On a geometry reconstructed from images, refine trains with that stage's objective (its last checkpoint's
+    colour network) beside the image term; without that checkpoint it stops with one line naming the folder."""
+    from fit_fixtures import write_rendered_scene
+    from nefii.cli.main import main
 
-def test_a_resumed_refinement_continues_the_same_sequence(tmp_path):
-    """Three steps, a checkpoint, three more in a new Refiner, equal to six uninterrupted (mesh included)."""
+    scene = write_rendered_scene(tmp_path / "scene", res=20, n_train=6, n_test=1)
+    geo, run = tmp_path / "geo", tmp_path / "run"
+    assert main(["geometry", str(scene), "--out", str(geo), "--preset", "tiny", "--quiet", "--set", "threads=1",
+                 "--set", "steps=30", "--set", "mesh_resolution=40", "--set", "batch_rays=64"]) == 0
+    assert main(["fit", str(scene), "--preset", "tiny", "--quiet", "--set", "steps=4", "--set", "threads=1",
+                 "--out", str(run), "--geometry", str(geo)]) == 0
+    shutil.copytree(run, tmp_path / "run2")
+    refine = ["--quiet", "--set", "steps=3", "--set", "batch_pixels=64", "--set", "threads=1",
+              "--set", "remesh_resolution=32", "--set", "mesh_resolution=32"]
+    assert main(["refine", str(run), *refine]) == 0
+    stats = json.loads((run / "refined" / "refine_stats.json").read_text())
+    assert stats["mean_losses_this_session"]["anchor"] > 0
+    assert stats["mean_losses_this_session"]["silhouette"] == 0 == stats["mean_losses_this_session"]["eikonal"]
+    # stopped between the phases (the geometry written, the materials' fit not done): --resume runs only the fit
+    (run / "refined" / "refine_stats.json").unlink()
+    sdf_bytes = (run / "refined" / "sdf.pt").read_bytes()
+    capsys.readouterr()
+    assert main(["refine", str(run), *refine]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert main(["refine", str(run), *refine, "--resume"]) == 0
+    assert (run / "refined" / "sdf.pt").read_bytes() == sdf_bytes
+    assert json.loads((run / "refined" / "refine_stats.json").read_text())["geometry"] == "refined in an earlier session"
+    shutil.rmtree(geo / "checkpoints")
+    capsys.readouterr()
+    assert main(["refine", str(tmp_path / "run2"), *refine]) == 2
+    err = capsys.readouterr().err
+    assert "checkpoints" in err and "colour network" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "run2" / "refined" / "sdf.pt").exists()
+
+
+@pytest.mark.parametrize("anchored", [False, True])
+def test_a_resumed_refinement_continues_the_same_sequence(tmp_path, anchored):
+    """Three steps, a checkpoint, three more in a new Refiner, equal to six uninterrupted (mesh included; with the
+    geometry stage's objective as an anchor, its colour network too)."""
     from fit_fixtures import scene_mesh
 
     mesh = scene_mesh()
@@ -187,14 +229,22 @@ def test_a_resumed_refinement_continues_the_same_sequence(tmp_path):
     fit_cfg = FitConfig(num_samples=2)
     cfg = RefineConfig(steps=6, batch_pixels=64, remesh_every=2, remesh_resolution=24, silhouette_samples=8)
     box = (torch.full((3,), -0.9), torch.full((3,), 0.9))
+    geo_cfg = resolve_geometry_config("tiny", ["batch_rays=32", "samples=8", "importance=8"])
 
     def refiner() -> Refiner:
-        return Refiner(cfg, fit_cfg, build_model(fit_cfg, box), sphere_sdf(), Normalization((0.0, 0.0, 0.0), 1.0),
-                       rays, 0.005, 0.04, (1e-2, 1e-3), torch.device("cpu"))
+        if not anchored:
+            return Refiner(cfg, fit_cfg, build_model(fit_cfg, box), sphere_sdf(), Normalization((0.0, 0.0, 0.0), 1.0),
+                           rays, 0.005, 0.04, (1e-2, 1e-3), torch.device("cpu"))
+        neus = NeuSModel(geo_cfg, background=False)
+        anchor = GeometryAnchor(neus, ImageObjective(geo_cfg, rays.origins, rays.directions, rays.rgb, rays.mask),
+                                geo_cfg.steps, 1e-3)
+        return Refiner(cfg, fit_cfg, build_model(fit_cfg, box), neus.sdf, Normalization((0.0, 0.0, 0.0), 1.0),
+                       rays, 0.005, 0.04, (1e-2, 1e-3), torch.device("cpu"), anchor)
 
     whole = refiner()
     for _ in range(6):
-        whole.train_step()
+        terms = whole.train_step()
+    assert (terms.anchor.item() > 0) == anchored
     first = refiner()
     for _ in range(3):
         first.train_step()
@@ -206,5 +256,6 @@ def test_a_resumed_refinement_continues_the_same_sequence(tmp_path):
         second.train_step()
     a, b = whole.state_dict(), second.state_dict()
     assert a["step"] == b["step"] == 6
-    for part in ("model", "sdf"):
+    parts = ("model", "sdf", "anchor") if anchored else ("model", "sdf")
+    for part in parts:
         assert all(torch.equal(a[part][k], b[part][k]) for k in a[part]), part

@@ -10,7 +10,12 @@ and image loss (Eq. 7), IDR-style:
   differentiated twice through the SDF (:func:`~nefii.sdf.implicit.implicit_hit`, :func:`~nefii.sdf.implicit.normal_at`);
 - the estimator's directions, densities and secondary rays from the detached normal, the mesh hit and the current
   mesh (:func:`nefii.fit.path_trace.path_trace`'s ``shading_normal``);
-- IDR's silhouette loss on the rays the surface gets wrong (a hit outside the mask, a miss inside it), the eikonal term and the geometry stage's tangent-plane normal prior.
+- the geometry stage's own objective (NeuS's colour, mask, eikonal, area and normal terms, its colour network
+  trained on) kept as an anchor (:class:`GeometryAnchor`): the surface stays where that stage balanced it unless
+  the image term moves it. Without one (an SDF fitted to a mesh has no colour network), IDR's silhouette loss on
+  the rays the surface gets wrong (a hit outside the mask, a miss inside it), the eikonal term and the geometry
+  stage's tangent-plane normal prior stand in; on reconstructions those moved every surface away from the truth
+  and opened holes (docs/experiments.md, 2026-11-27).
 
 Gradients dropped (what they bias): visibility and the secondary hits are not differentiated (a shadow's edge
 or an occluder's position does not move the surface: a lid over a hollow is not opened by the shading of the
@@ -29,7 +34,7 @@ import numpy as np
 import torch
 import trimesh
 from jaxtyping import Bool, Float
-from torch import Tensor
+from torch import Tensor, nn
 
 from ..config_tools import Range, validate
 from ..data.scene import SceneData
@@ -38,8 +43,10 @@ from ..raycast import MeshGeometry, Rays
 from ..sdf.extract import extract_mesh
 from ..sdf.implicit import implicit_hit, newton_along_ray, normal_at, silhouette_loss
 from ..sdf.losses import normal_variation
+from ..sdf.model import NeuSModel
 from ..sdf.networks import SDFNetwork
 from ..sdf.normalization import Normalization
+from ..sdf.train import ImageObjective
 from ..sdf.volume import sphere_bounds
 from .config import FitConfig
 from .losses import LossTerms, SmoothnessPrior, observed_loss, smoothness
@@ -55,24 +62,26 @@ class RefineConfig:
     """refinement steps"""
     batch_pixels: Annotated[int, Range(1)] = 1024
     """training pixels per step (inside and outside the masks)"""
-    lr_sdf: Annotated[float, Range(0, 10)] = 1.0
-    """the SDF's learning rates (its hash table's, its MLP's) as a multiple of the rates the geometry stage ended
-    at: a fresh Adam moves every parameter by about its rate a step, and at the stage's starting rates the
-    SDF's MLP random-walked and the bowl's surface degraded"""
+    lr_sdf: Annotated[float, Range(0, 10)] = 5.0
+    """the SDF's learning rates (its hash table's, its MLP's; with an anchor, its colour network's too) as a
+    multiple of the rates the geometry stage ended at (at the stage's starting rates, without an anchor, the SDF's
+    MLP random-walked and the bowl's surface degraded)"""
     lr_fields: Annotated[float, Range(0, 10)] = 1.0
     """the material's, cache's and light's learning rates as a multiple of the rates the fit ended at"""
     lr_decay: Annotated[float, Range(0, 1, lo_open=True)] = 0.1
     """learning rates fall exponentially to this fraction at the last step"""
+    anchor: Annotated[float, Range(0)] = 0.1
+    """weight of the geometry stage's own objective (:class:`GeometryAnchor`) against the image term's 1"""
     eikonal: Annotated[float, Range(0)] = 0.1
-    """weight of ``(|grad f| - 1)^2`` at the hits and at random points in the unit sphere"""
+    """without an anchor: weight of ``(|grad f| - 1)^2`` at the hits and at random points in the unit sphere"""
     silhouette: Annotated[float, Range(0)] = 1.0
-    """weight of IDR's mask loss (with masks only)"""
+    """without an anchor: weight of IDR's mask loss (with masks only)"""
     silhouette_samples: Annotated[int, Range(2, 1024)] = 32
     """depths per ray at which the SDF's minimum is taken for the mask loss"""
     silhouette_sharpness: Annotated[float, Range(0, lo_open=True)] = 50.0
     """``alpha`` of the mask loss's ``sigmoid(-alpha min f)``, in 1 / normalised units (IDR: 50)"""
     normal_smoothness: Annotated[float, Range(0)] = 0.01
-    """weight of the geometry stage's tangent-plane normal prior at the hits (``nefii geometry`` uses 0.05, which
+    """without an anchor: weight of the geometry stage's tangent-plane normal prior at the hits (``nefii geometry`` uses 0.05, which
     resists the shading's pull: a sphere's missing bump grew half as fast, tests/test_refine.py)"""
     normal_radius: Annotated[float, Range(0, 1)] = 0.02
     """its tangent step, in normalised units"""
@@ -124,10 +133,30 @@ class TrainingRays:
 
 
 @dataclass(frozen=True)
+class GeometryAnchor:
+    """The geometry stage's objective as that stage ended, on the model it trained (whose SDF is refined)."""
+
+    model: NeuSModel
+    objective: ImageObjective
+    step: int
+    """the stage's last step: its annealing and its priors' schedules as they ended"""
+    rate: float
+    """the Adam rate the stage's networks (colour, sharpness, background) ended at"""
+
+    def loss(self, generator: torch.Generator) -> Tensor:
+        return self.objective.loss(self.model, self.step, generator).total
+
+    def networks(self) -> list[nn.Parameter]:
+        """What the anchor trains besides the SDF."""
+        return [p for name, p in self.model.named_parameters() if not name.startswith("sdf.")]
+
+
+@dataclass(frozen=True)
 class RefineTerms:
     total: Tensor
     image: LossTerms | None
     """Eq. 7 on the pixels whose rays hit (None when no ray of the batch did)"""
+    anchor: Tensor
     silhouette: Tensor
     eikonal: Tensor
     normal: Tensor
@@ -139,10 +168,13 @@ class Refiner:
 
     def __init__(self, cfg: RefineConfig, fit_cfg: FitConfig, model: NeFIIModel, sdf: SDFNetwork, norm: Normalization,
                  rays: TrainingRays, normal_sigma: float, lookup_sigma: float, sdf_rates: tuple[float, float],
-                 device: torch.device) -> None:
+                 device: torch.device, anchor: GeometryAnchor | None = None) -> None:
         """``sdf_rates``: the Adam rates of the SDF's hash table and of the rest of it as the geometry stage ended
-        (``cfg.lr_sdf`` scales them)."""
+        (``cfg.lr_sdf`` scales them). ``anchor``: the geometry stage's objective on the model whose SDF is ``sdf``."""
+        if anchor is not None and anchor.model.sdf is not sdf:
+            raise ValueError("the anchor's model must hold the SDF being refined")
         self.cfg, self.fit_cfg, self.model, self.sdf, self.norm, self.rays = cfg, fit_cfg, model, sdf, norm, rays
+        self.anchor = anchor
         self.normal_sigma, self.lookup_sigma, self.device = normal_sigma, lookup_sigma, device
         sdf.requires_grad_(True).train()
         final = fit_cfg.lr_decay * cfg.lr_fields
@@ -152,6 +184,12 @@ class Refiner:
         groups.append({"params": [p for p in sdf.parameters() if id(p) not in ids], "lr": sdf_rates[1] * cfg.lr_sdf})
         if table:
             groups.append({"params": table, "lr": sdf_rates[0] * cfg.lr_sdf})
+        if anchor is not None:
+            networks = anchor.networks()
+            for p in networks:
+                p.requires_grad_(True)
+            anchor.model.train()
+            groups.append({"params": networks, "lr": anchor.rate * cfg.lr_sdf})
         self.optimizer = torch.optim.Adam(groups)
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, cfg.lr_decay ** (1.0 / cfg.steps))
         self.generator = torch.Generator(device=device).manual_seed(cfg.seed)
@@ -217,10 +255,14 @@ class Refiner:
             empty = pts.position.new_zeros(0, 3)
             image = observed_loss(traced, model.cache(pts.position, pts.normal, pts.wo), self.rays.rgb[idx][obj],
                                   empty, empty, fit_cfg.tonemap, fit_cfg.loss, fit_cfg.beta1, 0.0, smooth)
-            if cfg.normal_smoothness > 0:
+            if self.anchor is None and cfg.normal_smoothness > 0:
                 normal_prior = normal_variation(sdf, x_u.detach(), cfg.normal_radius, g)
+        image_total = image.total if image is not None else zero
+        if self.anchor is not None:
+            anchor = self.anchor.loss(g)
+            return RefineTerms(image_total + cfg.anchor * anchor, image, anchor, zero, zero, zero, hits)
 
-        # ---- silhouettes and the eikonal term
+        # ---- without an anchor: silhouettes and the eikonal term
         sil = zero
         if mask is not None and cfg.silhouette > 0:
             # IDR's rule: only rays the surface gets wrong (a hit outside the mask, a miss inside it); on a ray that
@@ -234,9 +276,8 @@ class Refiner:
         u = u / u.norm(dim=-1, keepdim=True) * torch.rand(len(u), 1, generator=g, device=self.device) ** (1 / 3)
         _, grad_free, _ = sdf.with_gradient(u, create_graph=True)
         eik = 0.5 * (eik_hits + (grad_free.norm(dim=-1) - 1.0).square().mean())
-        total = (image.total if image is not None else zero) + cfg.silhouette * sil + cfg.eikonal * eik \
-            + cfg.normal_smoothness * normal_prior
-        return RefineTerms(total, image, sil, eik, normal_prior, hits)
+        total = image_total + cfg.silhouette * sil + cfg.eikonal * eik + cfg.normal_smoothness * normal_prior
+        return RefineTerms(total, image, zero, sil, eik, normal_prior, hits)
 
     def train_step(self) -> RefineTerms:
         terms = self.loss()
@@ -249,12 +290,15 @@ class Refiner:
         return {"step": self.step, "model": self.model.state_dict(), "sdf": self.sdf.state_dict(),
                 "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
                 "generator": self.generator.get_state(), "config": dataclasses.asdict(self.cfg),
-                "mesh": None if self.mesh is None else tuple(torch.from_numpy(a) for a in self._arrays)}
+                "mesh": None if self.mesh is None else tuple(torch.from_numpy(a) for a in self._arrays),
+                "anchor": None if self.anchor is None else self.anchor.model.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         self.step = int(state["step"])
         self.model.load_state_dict(state["model"])
         self.sdf.load_state_dict(state["sdf"])
+        if self.anchor is not None:
+            self.anchor.model.load_state_dict(state["anchor"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["generator"])
