@@ -274,6 +274,20 @@ def test_missed_is_the_share_of_the_reference_the_prediction_lacks():
     assert mesh_distance(shrunk, a, samples=20000).missed > 0.99
 
 
+def test_the_covered_normal_error_is_the_tilt_where_the_prediction_lies_and_ignores_what_it_lacks():
+    """A grid of a unit square tilted by 3 degrees about its middle against the flat square: every normal is 3
+    degrees off, so the median over the covered part is 3 (the tilted edges, farther than 1% of the diagonal,
+    are left out); a second, missing square adds to ``missed`` and not to the median."""
+    flat = trimesh.creation.box((1.0, 1.0, 1e-3)).subdivide().subdivide().subdivide()
+    tilted = flat.copy().apply_transform(trimesh.transformations.rotation_matrix(math.radians(3.0), (1, 0, 0)))
+    d = mesh_distance(tilted, flat, samples=40000)
+    assert d.normal_median_covered_deg == pytest.approx(3.0, abs=0.05)
+    assert mesh_distance(flat, flat, samples=40000).normal_median_covered_deg < 0.01
+    far = flat.copy().apply_translation((0.0, 0.0, 3.0))
+    d2 = mesh_distance(tilted, trimesh.util.concatenate([flat, far]), samples=40000)
+    assert d2.missed > 0.45 and d2.normal_median_covered_deg == pytest.approx(3.0, abs=0.05)
+
+
 def test_sphere_tracing_agrees_with_embree_on_the_extracted_mesh():
     """Hit or miss the same for nearly every ray, and the distance within one marching-cubes voxel."""
     net = bumpy_sdf()
