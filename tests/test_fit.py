@@ -1,6 +1,7 @@
 """End to end: nefii fit and nefii eval on a tiny rendered scene; resume after SIGKILL; bad input."""
 import csv
 import json
+import math
 import os
 import signal
 import subprocess
@@ -154,6 +155,31 @@ def test_eq8_moves_what_of_the_material_it_is_asked_to(tiny_scene):
         albedo_rows, roughness_row = grad[:3].abs().sum(), grad[3].abs().sum()
         assert bool(albedo_rows > 0), learn
         assert bool(roughness_row > 0) == (learn == "all"), learn
+
+
+def test_eq8_trains_only_the_light_lobes_the_cache_can_hold(tiny_scene):
+    """With ``unobserved_light = resolvable`` (the ``cpu`` preset) the unobserved step leaves a lobe sharper than
+    the cache's direction encoding holds without gradient and trains the others; with ``all`` (``paper``, the
+    official code) it trains both. An old run's config reads back as ``all``."""
+    assert resolve_config("cpu", []).unobserved_light == "resolvable"
+    assert resolve_config("paper", []).unobserved_light == "all"
+    old = config_to_dict(resolve_config("cpu", []))
+    del old["unobserved_light"]
+    assert saved_config_from_dict(old).unobserved_light == "all"
+    for learn in ("all", "resolvable"):
+        cfg = resolve_config("tiny", [f"unobserved_light={learn}", "unobserved_every=2", "light_solve_every=0"])
+        trainer = prepare_fit(cfg, tiny_scene).trainer
+        env = trainer.model.env
+        limit = trainer.model.cache.max_lobe_sharpness
+        with torch.no_grad():                           # half the lobes far sharper than the cache holds
+            env.log_sharpness[::2] = math.log(50.0 * limit)
+            env.log_sharpness[1::2] = math.log(0.1 * limit)
+        assert trainer.train_step().kind == "observed"                  # fills the secondary-hit buffer
+        trainer.optimizer.zero_grad()
+        assert trainer.train_step().kind == "unobserved"
+        grad = env.log_amplitude.grad.abs().sum(-1)
+        assert bool(grad[1::2].sum() > 0), learn
+        assert bool(grad[::2].sum() > 0) == (learn == "all"), learn
 
 
 def test_policies():

@@ -14,7 +14,8 @@ import torch
 from quadrature import DTYPE, integrate_sphere
 from nefii.render.equirect import (direction_to_pixel, direction_to_uv, pixel_directions, pixel_solid_angles,
                                    uv_to_direction)
-from nefii.render.sg import SGMixture, fibonacci_sphere, sg_energy, sg_eval, sg_integral, sg_lobes, sg_to_equirect
+from nefii.render.sg import (SGMixture, fibonacci_sphere, sg_detach_sharper, sg_energy, sg_eval, sg_integral, sg_lobes,
+                             sg_to_equirect)
 
 
 def tensor(*values: float) -> torch.Tensor:
@@ -227,3 +228,30 @@ def test_fibonacci_sphere_is_unit_and_spread(n: int) -> None:
     if n >= 128:
         assert float(p.mean(0).norm()) < 2.0 / n
         assert float((p[:, 2] > 0).double().mean()) == pytest.approx(0.5, abs=1.0 / n)
+
+
+def test_detaching_the_sharp_lobes_keeps_the_value_and_stops_their_gradient() -> None:
+    g = torch.Generator().manual_seed(0)
+    axis = torch.nn.functional.normalize(torch.randn(6, 3, generator=g), dim=-1).requires_grad_(True)
+    sharpness = torch.tensor([5.0, 500.0, 20.0, 2000.0, 1.0, 300.0], requires_grad=True)
+    amplitude = torch.rand(6, 3, generator=g).requires_grad_(True)
+    w = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1)
+    sg = SGMixture(axis, sharpness, amplitude)
+    held = sg_detach_sharper(sg, 250.0)
+    assert torch.equal(sg_eval(w, held), sg_eval(w, sg))
+    sg_eval(w, held).sum().backward()
+    sharp = sharpness.detach() > 250.0
+    for p in (axis, amplitude):
+        assert bool((p.grad[sharp] == 0).all()) and bool((p.grad[~sharp].abs().sum(-1) > 0).all())
+    assert bool((sharpness.grad[sharp] == 0).all()) and bool((sharpness.grad[~sharp] != 0).all())
+
+
+def test_the_cache_holds_lobes_up_to_its_direction_encodings_bandwidth() -> None:
+    """F Fourier frequencies reach pi 2^(F-1); a lobe of sharpness lambda has its spectrum at e^-1 at sqrt(2
+    lambda): the limit is (pi 2^(F-1))^2 / 2, four times higher for each frequency added."""
+    from nefii.fields.cache import RadianceCache
+    from nefii.fields.encodings import HashGrid
+    box = (torch.zeros(3), torch.ones(3))
+    four = RadianceCache(HashGrid(2, 2, 8, 4, 8), 4, 8, 1, box).max_lobe_sharpness
+    assert four == pytest.approx((8 * math.pi) ** 2 / 2)
+    assert RadianceCache(HashGrid(2, 2, 8, 4, 8), 5, 8, 1, box).max_lobe_sharpness == pytest.approx(4 * four)

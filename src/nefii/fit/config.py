@@ -85,6 +85,11 @@ class FitConfig:
     detached) or ``albedo`` (roughness held fixed there). The cache sees a point's outgoing radiance
     through a few Fourier frequencies of direction, so pulling roughness towards it blurs a glossy lobe and
     kept the fit's roughness rough (docs/experiments.md, 2026-11-25)"""
+    unobserved_light: Literal["all", "resolvable"] = "resolvable"
+    """what of the SG light Eq. 8 trains: ``all`` (the official code) or the lobes the cache can hold in direction
+    (``RadianceCache.max_lobe_sharpness``; a sharper lobe, a sun, is a constant of Eq. 8's gradient). The cache
+    cannot hold a sharp lobe's glossy reflection, so with neither side detached Eq. 8 widened and drained the
+    sun that the light initialisation had found (docs/experiments.md, 2026-11-27, fifth session)"""
     indirect: bool = True
     """ablation: secondary hits see the radiance cache (off: black)"""
     visibility: bool = True
@@ -226,7 +231,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "material": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 8},
         "cache": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 4},
         "light": {"sharpness_max": 3000.0}, "brdf": {"diffuse": "lambert", "shadowing": "schlick"},
-        "unobserved_material": "all",
+        "unobserved_material": "all", "unobserved_light": "all",
     },
     "tiny": {
         "steps": 20, "batch_pixels": 64, "background_pixels": 16, "num_samples": 2, "unobserved_points": 64,
@@ -252,9 +257,10 @@ def saved_config_from_dict(values: dict[str, Any]) -> FitConfig:
     """A config a run saved: a setting missing from it reads back as the behaviour the run was fitted with,
     not today's default (the official BRDF before ``brdf`` existed; Eq. 8 training all of the material before
     ``unobserved_material`` existed; no light prior before ``light_prior`` existed; a constant albedo prior before
-    ``smooth_albedo_end`` existed)."""
+    ``smooth_albedo_end`` existed; Eq. 8 training every lobe of the light before ``unobserved_light`` existed)."""
     return config_from_dict({"brdf": {"diffuse": "lambert", "shadowing": "schlick"},
-                             "unobserved_material": "all", "light_prior": 0.0, "smooth_albedo_end": 1.0, **values})
+                             "unobserved_material": "all", "light_prior": 0.0, "smooth_albedo_end": 1.0,
+                             "unobserved_light": "all", **values})
 
 
 def config_to_dict(cfg: FitConfig) -> dict[str, Any]:

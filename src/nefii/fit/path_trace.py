@@ -121,18 +121,21 @@ def trace_live_samples(pts: SurfacePoints, samples: DirectionSamples, geometry: 
 
 def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, material: Material, num_samples: int,
                generator: torch.Generator | None, transport: Transport = Transport(),
-               shading_normal: Float[Tensor, "B 3"] | None = None) -> PathTraced:
+               shading_normal: Float[Tensor, "B 3"] | None = None,
+               environment: Callable[[Tensor], Tensor] | None = None) -> PathTraced:
     """Eq. 2-4 at ``pts`` with the ``material`` there: the path-traced colour and the secondary hits.
     ``shading_normal`` (default ``pts.normal``) is the normal the estimate's terms are evaluated with while
     the directions are drawn, weighted and traced from ``pts.normal``: a geometry refinement passes the SDF's
-    differentiable normal here, and the samples' densities and visibility stay constants of its gradient."""
+    differentiable normal here, and the samples' densities and visibility stay constants of its gradient.
+    ``environment`` (default ``model.env.radiance``) gives the radiance of the directions that escape."""
     n = pts.normal if shading_normal is None else shading_normal
+    radiance = model.env.radiance if environment is None else environment
     samples = sample_directions(pts, material, model.env.light_sampler(), num_samples, generator)
     wi = samples.wi                                                            # (B, S, 3)
     live = trace_live_samples(pts, samples, geometry, transport)
     b_idx, s_idx, w_live, hit = live.point, live.sample, live.direction, live.hit
     if hit is None:
-        L_i = wi.new_zeros(wi.shape).index_put((b_idx, s_idx), model.env.radiance(w_live))
+        L_i = wi.new_zeros(wi.shape).index_put((b_idx, s_idx), radiance(w_live))
         no_hits = SurfacePoints(*(wi.new_zeros(0, 3) for _ in fields(SurfacePoints)))
         return PathTraced(*_estimate(samples, material, n, L_i), no_hits)
 
@@ -140,7 +143,7 @@ def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, materi
     secondary = SurfacePoints.from_hit(hit, hit.valid, -w_live[hit.valid])
     # ---- incoming light: V E(w) + (1 - V) L(x', n', -w)
     miss = ~hit.valid
-    L_i = wi.new_zeros(wi.shape).index_put((b_idx[miss], s_idx[miss]), model.env.radiance(w_live[miss]))
+    L_i = wi.new_zeros(wi.shape).index_put((b_idx[miss], s_idx[miss]), radiance(w_live[miss]))
     if transport.indirect and len(secondary):
         L_hit = model.cache(secondary.position, secondary.normal, secondary.wo)
         L_i = L_i.index_put((b_idx[hit.valid], s_idx[hit.valid]), L_hit)

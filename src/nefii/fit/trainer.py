@@ -10,14 +10,17 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import torch
+from torch import Tensor
 from tqdm import tqdm
 
 from ..raycast.base import Geometry
 from ..io.checkpoints import save_checkpoint
 from ..render.brdf import Material
-from ..render.sg import sg_integral
+from ..fields.environment import SGEnvironment
+from ..render.sg import sg_detach_sharper, sg_eval, sg_integral
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
 from .exposure import ViewGains
@@ -98,15 +101,24 @@ class Trainer:
         j = torch.randint(max(len(px.bg_dirs), 1), (nb,), generator=g, device=self.device)
         return px.select(i, j)
 
-    def _trace(self, pts: SurfacePoints, rough: float | None, train_roughness: bool = True):
+    def _trace(self, pts: SurfacePoints, rough: float | None, train_roughness: bool = True,
+               environment: Callable[[Tensor], Tensor] | None = None):
         """The material at ``pts`` and the estimator's colour there (Eq. 2-4); with ``train_roughness`` False
-        the estimate's gradient reaches the albedo but not the roughness."""
+        the estimate's gradient reaches the albedo but not the roughness. ``environment``: see ``path_trace``."""
         material = decode_material(self.model, pts.position, pts.lookup_normal, rough)
         if not train_roughness:
             material = Material(material.albedo, material.roughness.detach(), material.brdf)
         traced = path_trace(self.model, self.geometry, pts, material, self.cfg.num_samples, self.generator,
-                            self.transport)
+                            self.transport, environment=environment)
         return material, traced
+
+    def _consistency_light(self) -> Callable[[Tensor], Tensor] | None:
+        """The environment's radiance as Eq. 8 trains it (``FitConfig.unobserved_light``); None: as it is."""
+        env = self.model.env
+        if self.cfg.unobserved_light == "all" or not isinstance(env, SGEnvironment):
+            return None
+        limit = self.model.cache.max_lobe_sharpness
+        return lambda w: sg_eval(w, sg_detach_sharper(env(), limit))
 
     @torch.no_grad()
     def solve_light(self, rough: float | None) -> None:
@@ -147,7 +159,8 @@ class Trainer:
         if self.alternation.unobserved(step) and len(self.buffer) > 0:
             # ---- Eq. 8: secondary hits drawn from the buffer, path-traced against the cache there
             pts = self.buffer.sample(cfg.unobserved_points, self.generator)
-            _, traced = self._trace(pts, rough, train_roughness=cfg.unobserved_material == "all")
+            _, traced = self._trace(pts, rough, train_roughness=cfg.unobserved_material == "all",
+                                    environment=self._consistency_light())
             terms = unobserved_loss(traced, model.cache(pts.position, pts.normal, pts.wo), cfg.tonemap, cfg.loss)
             kind = "unobserved"
         else:

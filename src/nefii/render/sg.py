@@ -65,6 +65,15 @@ def sg_eval(w: Float[Tensor, "*bs 3"], sg: SGMixture) -> Float[Tensor, "*bs 3"]:
     return sg_lobes(w, sg) @ sg.amplitude
 
 
+def sg_detach_sharper(sg: SGMixture, limit: float) -> SGMixture:
+    """``sg`` with every lobe sharper than ``limit`` a constant (its axis, sharpness and amplitude detached): its
+    value is unchanged, and gradients reach only the other lobes."""
+    sharp = sg.sharpness > limit
+    return SGMixture(torch.where(sharp.unsqueeze(-1), sg.axis.detach(), sg.axis),
+                     torch.where(sharp, sg.sharpness.detach(), sg.sharpness),
+                     torch.where(sharp.unsqueeze(-1), sg.amplitude.detach(), sg.amplitude))
+
+
 def sg_integral(sharpness: Float[Tensor, "*K"]) -> Float[Tensor, "*K"]:
     """Integral of a unit-amplitude lobe over the sphere: ``2 pi / lambda (1 - e^{-2 lambda})``."""
     return (-2.0 * math.pi) * torch.expm1(-2.0 * sharpness) / sharpness
