@@ -36,6 +36,8 @@ from ..sdf.train import ImageObjective
 from .common import set_threads
 
 REFINED, UNREFINED, STATS = "refined", "model_unrefined.pt", "refine_stats.json"
+GEOMETRY_PHASE = "geometry_phase.json"
+"""the first phase's record, kept for the final stats when the second phase is resumed"""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -101,15 +103,18 @@ def run(args: argparse.Namespace) -> int:
     print("nefii refine: warning: experimental; on the built-in scenes it has so far moved the surfaces little "
           "(benchmarks/results/geometry.md); the fit's own model stays in model_unrefined.pt")
     t0 = time.time()
-    geometry_stats = None
     if not (out / "sdf.pt").is_file():
-        geometry_stats = _refine_geometry(args, cfg, fitted, out, threads)
-        if geometry_stats is None:
+        if not _refine_geometry(args, cfg, fitted, out, threads):
             return 1
+    try:
+        geometry_stats = json.loads((out / GEOMETRY_PHASE).read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(out / GEOMETRY_PHASE, f"cannot read the geometry phase's record ({type(e).__name__}: {e}); "
+                                               "remove the folder and refine again") from None
     fit_wall = time.time()
     if not _refit(args, fitted, out):
         return 1
-    stats = {**(geometry_stats or {"geometry": "refined in an earlier session"}),
+    stats = {**geometry_stats,
              "materials_wall_s_this_session": time.time() - fit_wall, "config": dataclasses.asdict(cfg),
              "from": str(source.folder), "threads": threads,
              "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
@@ -120,9 +125,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _refine_geometry(args: argparse.Namespace, cfg: RefineConfig, fitted: FittedRun, out: Path,
-                     threads: int) -> dict | None:
-    """The SDF refined with the run's material, light and cache; ``out`` gets the refined SDF and mesh. Returns
-    the phase's record, or None after a failure (said)."""
+                     threads: int) -> bool:
+    """The SDF refined with the run's material, light and cache; ``out`` gets the refined mesh, the phase's record
+    and then the refined SDF (whose presence marks the phase done). False after a failure (said)."""
     source = fitted.geometry
     assert source.folder is not None
     device = torch.device("cpu")
@@ -156,7 +161,7 @@ def _refine_geometry(args: argparse.Namespace, cfg: RefineConfig, fitted: Fitted
             bar.close()
             print(f"nefii refine: error: {e}; the run's model.pt is untouched"
                   + (f", checkpoints in {ckpt_dir}" if any(ckpt_dir.iterdir()) else ""))
-            return None
+            return False
         sums["anchor"] += terms.anchor.item()
         sums["silhouette"] += terms.silhouette.item()
         sums["eikonal"] += terms.eikonal.item()
@@ -168,15 +173,17 @@ def _refine_geometry(args: argparse.Namespace, cfg: RefineConfig, fitted: Fitted
             last = time.monotonic()
     bar.close()
     mesh = refiner.zero_set(cfg.mesh_resolution)
-    with atomic_path(out / MESH_FILE) as tmp:
-        mesh.export(tmp, file_type="ply")
-    save_sdf(out, loaded.config, refiner.sdf, loaded.normalization, f"refined from {source.folder} by nefii refine")
     n = max(refiner.step - step0, 1)
     wall = time.time() - t0
+    record = {"steps": refiner.step, "steps_this_session": refiner.step - step0, "wall_s_this_session": wall,
+              "mean_losses_this_session": {k: v / n for k, v in sums.items()}}
+    with atomic_path(out / MESH_FILE) as tmp:
+        mesh.export(tmp, file_type="ply")
+    write_text_atomic(out / GEOMETRY_PHASE, json.dumps(record, indent=2) + "\n")
+    save_sdf(out, loaded.config, refiner.sdf, loaded.normalization, f"refined from {source.folder} by nefii refine")
     print(f"nefii refine: the geometry refined in {wall / 60:.1f} min ({len(mesh.faces)} triangles); now the "
           "materials are fitted again on it")
-    return {"steps": refiner.step, "steps_this_session": refiner.step - step0, "wall_s_this_session": wall,
-            "mean_losses_this_session": {k: v / n for k, v in sums.items()}}
+    return True
 
 
 def _refit(args: argparse.Namespace, fitted: FittedRun, out: Path) -> bool:
