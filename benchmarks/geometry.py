@@ -57,7 +57,8 @@ def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[st
     d = mesh_distance(trimesh.load(out / "mesh.ply", force="mesh"), trimesh.load(data / "mesh.ply", force="mesh"))
     wall_min, resumed = all_steps_wall_min(stats)
     return {"scene": name, "masks": masks, "chamfer_rel": d.chamfer_rel, "normal_deg": d.normal_deg, "missed": d.missed,
-            "normal_median": d.normal_median_covered_deg, "wall_min": wall_min, "resumed": resumed, "peak_gib": stats["peak_rss_gib"],
+            "normal_median": d.normal_median_covered_deg, "wall_min": wall_min, "resumed": resumed,
+            "peak_gib": stats["peak_rss_gib"],
             "folder": out, "code": code_version()}
 
 
@@ -197,7 +198,8 @@ def main() -> None:
                 f"mesh's first hits and scored the same way: what the geometry alone costs (a fit on the "
                 f"reconstructed mesh that reaches it loses nothing beyond the geometry).", ""]
                if any_fit else []),
-             "| scene | masks | chamfer (% diag) | missed | normal error mean / covered median (deg) | wall min | peak GiB |"
+             "| scene | masks | chamfer (% diag) | missed | normal error mean / covered median (deg) | wall min | "
+             "peak GiB |"
              + (" albedo PSNR recon / GT geometry | GT material on recon | roughness MSE recon / GT geometry |"
                 if any_fit else ""),
              "|---|---|---|---|---|---|---|" + ("---|---|---|" if any_fit else "")]
@@ -212,8 +214,8 @@ def main() -> None:
             line += " | | |"
         lines.append(line)
     if any("refined" in r for r in rows):
-        lines += ["", "Refined (`nefii refine`, default settings, on a copy of each fit above: the geometry refined, then "
-                  "the materials fitted again on it): the refined mesh measured as the reconstruction is, and the "
+        lines += ["", "Refined (`nefii refine`, default settings, on a copy of each fit above: the geometry refined, "
+                  "then the materials fitted again on it): the refined mesh measured as the reconstruction is, and the "
                   "refined run evaluated (masked albedo PSNR and roughness MSE: refined / before refinement / "
                   "ground-truth geometry). Minutes: both phases (the geometry's in brackets). Targets: normal error "
                   "<= 5 degrees, missed <= 5%, albedo within 1.0 dB and roughness MSE within 1.5x of the "

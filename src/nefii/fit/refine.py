@@ -81,8 +81,8 @@ class RefineConfig:
     silhouette_sharpness: Annotated[float, Range(0, lo_open=True)] = 50.0
     """``alpha`` of the mask loss's ``sigmoid(-alpha min f)``, in 1 / normalised units (IDR: 50)"""
     normal_smoothness: Annotated[float, Range(0)] = 0.01
-    """without an anchor: weight of the geometry stage's tangent-plane normal prior at the hits (``nefii geometry`` uses 0.05, which
-    resists the shading's pull: a sphere's missing bump grew half as fast, tests/test_refine.py)"""
+    """without an anchor: weight of the geometry stage's tangent-plane normal prior at the hits (``nefii geometry``
+    uses 0.05, which resists the shading's pull: a sphere's missing bump grew half as fast, tests/test_refine.py)"""
     normal_radius: Annotated[float, Range(0, 1)] = 0.02
     """its tangent step, in normalised units"""
     remesh_every: Annotated[int, Range(1)] = 200
