@@ -43,7 +43,8 @@ GEOMETRY_PHASE = "geometry_phase.json"
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("refine", help="refine a reconstruction's geometry through the fit", description=__doc__)
     p.add_argument("run", type=Path, help="run folder of nefii fit --geometry GEO")
-    p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in RUN/refined (either phase)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the last checkpoint in RUN/refined (either phase)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a refinement setting, e.g. --set steps=400 (see nefii.fit.refine.RefineConfig)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
