@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
+import socket
 
 import numpy as np
 import pytest
@@ -217,6 +219,12 @@ def test_refine_keeps_the_geometry_stage_objective(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "checkpoints" in err and "colour network" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "run2" / "refined" / "sdf.pt").exists()
+    # a run another live process is writing is left alone
+    (tmp_path / "run2" / "run.lock").write_text(json.dumps({"pid": os.getppid(), "host": socket.gethostname(),
+                                                             "verb": "fit", "since": "now"}))
+    capsys.readouterr()
+    assert main(["refine", str(tmp_path / "run2"), *refine]) == 2
+    assert "in use by" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("anchored", [False, True])

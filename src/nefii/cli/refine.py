@@ -30,6 +30,7 @@ from ..fit.trainer import NonFiniteLoss
 from ..fit.refine import GeometryAnchor, RefineConfig, Refiner, TrainingRays
 from ..io.atomic import atomic_path, write_text_atomic
 from ..io.checkpoints import load_latest_checkpoint, save_checkpoint
+from ..io.lock import RunLock
 from ..sdf.model import NeuSModel
 from ..sdf.outputs import MESH_FILE, LoadedSDF, load_sdf, save_sdf
 from ..sdf.train import ImageObjective
@@ -87,6 +88,17 @@ def geometry_anchor(folder: Path, loaded: LoadedSDF, scene: SceneData) -> Geomet
 def run(args: argparse.Namespace) -> int:
     cfg = refine_config(args.overrides)
     folder: Path = args.run
+    if not (folder / "model.pt").is_file():
+        raise InputError(folder / "model.pt", "not found: has `nefii fit` finished in this folder?")
+    lock = RunLock(folder, "refine")            # one writer at a time: fit and geometry hold the same lock
+    lock.acquire(warn=lambda line: print(f"nefii refine: warning: {line}"))
+    try:
+        return _run(args, cfg, folder)
+    finally:
+        lock.release()
+
+
+def _run(args: argparse.Namespace, cfg: RefineConfig, folder: Path) -> int:
     out = folder / REFINED
     if (out / STATS).is_file():
         raise InputError(out, f"already refined (to refine the fit again, remove this folder and put {UNREFINED} "
