@@ -246,7 +246,7 @@ def test_a_resumed_refinement_continues_the_same_sequence(tmp_path, anchored):
                            rays, 0.005, 0.04, (1e-2, 1e-3), torch.device("cpu"))
         neus = NeuSModel(geo_cfg, background=False)
         anchor = GeometryAnchor(neus, ImageObjective(geo_cfg, rays.origins, rays.directions, rays.rgb, rays.mask),
-                                geo_cfg.steps, 1e-3)
+                                geo_cfg.steps)
         return Refiner(cfg, fit_cfg, build_model(fit_cfg, box), neus.sdf, Normalization((0.0, 0.0, 0.0), 1.0),
                        rays, 0.005, 0.04, (1e-2, 1e-3), torch.device("cpu"), anchor)
 

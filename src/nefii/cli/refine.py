@@ -82,7 +82,7 @@ def geometry_anchor(folder: Path, loaded: LoadedSDF, scene: SceneData) -> Geomet
     ckpt.restore(lambda state: model.load_state_dict(state["model"]), "the geometry stage's model")
     model.sdf.load_state_dict(loaded.sdf.state_dict())
     return GeometryAnchor(model, ImageObjective.from_views(cfg, scene, loaded.normalization, masks, torch.device("cpu")),
-                          cfg.steps, cfg.lr_networks * cfg.lr_decay)
+                          cfg.steps)
 
 
 def run(args: argparse.Namespace) -> int:

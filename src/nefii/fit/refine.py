@@ -140,8 +140,6 @@ class GeometryAnchor:
     objective: ImageObjective
     step: int
     """the stage's last step: its annealing and its priors' schedules as they ended"""
-    rate: float
-    """the Adam rate the stage's networks (colour, sharpness, background) ended at"""
 
     def loss(self, generator: torch.Generator) -> Tensor:
         return self.objective.loss(self.model, self.step, generator).total
@@ -169,7 +167,8 @@ class Refiner:
     def __init__(self, cfg: RefineConfig, fit_cfg: FitConfig, model: NeFIIModel, sdf: SDFNetwork, norm: Normalization,
                  rays: TrainingRays, normal_sigma: float, lookup_sigma: float, sdf_rates: tuple[float, float],
                  device: torch.device, anchor: GeometryAnchor | None = None) -> None:
-        """``sdf_rates``: the Adam rates of the SDF's hash table and of the rest of it as the geometry stage ended
+        """``sdf_rates``: the Adam rates of the SDF's hash table and of the rest of the stage's networks (the SDF's
+        MLP; with an anchor, the colour network, sharpness and background too) as the geometry stage ended
         (``cfg.lr_sdf`` scales them). ``anchor``: the geometry stage's objective on the model whose SDF is ``sdf``."""
         if anchor is not None and anchor.model.sdf is not sdf:
             raise ValueError("the anchor's model must hold the SDF being refined")
@@ -189,7 +188,7 @@ class Refiner:
             for p in networks:
                 p.requires_grad_(True)
             anchor.model.train()
-            groups.append({"params": networks, "lr": anchor.rate * cfg.lr_sdf})
+            groups.append({"params": networks, "lr": sdf_rates[1] * cfg.lr_sdf})
         self.optimizer = torch.optim.Adam(groups)
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, cfg.lr_decay ** (1.0 / cfg.steps))
         self.generator = torch.Generator(device=device).manual_seed(cfg.seed)
