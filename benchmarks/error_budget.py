@@ -245,7 +245,7 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
     if row in ("drift", "indirect_known"):
         overrides.append("unobserved=false")                        # no cache to keep consistent
     if row in ("drift", "light_known"):
-        overrides.append("light_prior=0")                           # a prior on a light that is not fitted
+        overrides += ["light_prior=0", "light_solve_every=0"]       # a prior on, or a solve of, a light not fitted
     cfg = resolve_config("cpu", overrides)
     session = prepare_fit(cfg, data, device=device)
     cfg, model, geometry = session.config, session.model, session.geometry
