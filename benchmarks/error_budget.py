@@ -15,6 +15,9 @@ Rows (each a fit of the ``cpu`` preset, scored by ``nefii.evaluate.run.evaluate_
 * ``drift``: everything true (material, environment, indirect light traced with the true material), only
   roughness freed through a zero-initialised residual for ``--drift-steps`` steps, no warm-up: where the
   estimator and the loss pull roughness from the truth;
+* ``roughness_alone``: everything true as in ``drift``, but the roughness starts at the warm-up's 0.5
+  everywhere and is learned for as many steps as the ``cpu`` fit learns it after its warm-up: whether the
+  images determine the roughness when nothing else is unknown (the ``drift`` columns then read fitted - true);
 * ``light_known``: the true environment, frozen, in place of the 128 SGs;
 * ``material_known``: albedo and roughness frozen at the truth (light and cache are fitted);
 * ``indirect_known``: the radiance cache replaced by tracing further bounces with the current material and
@@ -58,7 +61,7 @@ from nefii.render.equirect import pixel_directions
 
 from .common import code_version, machine, stamp, write_results
 
-ROWS = ("truth_point", "truth_filtered", "floor", "drift", "light_known", "material_known", "indirect_known", "full", "constant")
+ROWS = ("truth_point", "truth_filtered", "floor", "drift", "roughness_alone", "light_known", "material_known", "indirect_known", "full", "constant")
 GLOSSY = 0.3
 """true roughness below this counts as glossy in the drift figures"""
 
@@ -73,12 +76,13 @@ def roughness_logit(r: Tensor) -> Tensor:
 
 class TrueMaterial(nn.Module):
     """The scene's material with the material field's call signature; ``free_roughness`` adds a learned,
-    zero-initialised residual to the roughness logit (the drift row)."""
+    zero-initialised residual to the roughness logit (the drift row), to that of ``roughness_start`` everywhere
+    instead of the truth's if given (the roughness_alone row)."""
 
     def __init__(self, lookup: MaterialOnMesh, box: tuple[Tensor, Tensor], free_roughness: bool,
-                 brdf: BRDFModel) -> None:
+                 brdf: BRDFModel, roughness_start: float | None = None) -> None:
         super().__init__()
-        self.lookup, self.brdf = lookup, brdf
+        self.lookup, self.brdf, self.roughness_start = lookup, brdf, roughness_start
         self.residual = None
         if free_roughness:
             self.encoding = HashGrid(12, 2, 16, 8, 128)
@@ -94,6 +98,8 @@ class TrueMaterial(nn.Module):
         with torch.no_grad():
             m = self.lookup(x.detach(), normal.detach())
         rough = m.roughness.to(x)
+        if self.roughness_start is not None:
+            rough = torch.full_like(rough, self.roughness_start)
         if self.residual is not None:
             rough = roughness_from_logit(roughness_logit(rough) + self.residual(self.encoding((x - self.lo) / self.size))[..., 0])
         if roughness_override is not None:
@@ -238,23 +244,26 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
     overrides = [f"seed={seed}", "preview_every=0", "checkpoint_every_s=1e9", *extra]
     if steps is not None:
         overrides.append(f"steps={steps}")
-    if row in ("drift", "material_known"):
+    if row in ("drift", "roughness_alone", "material_known"):
         overrides.append("roughness_warmup=0")                      # the truth needs no warm-up
     if row == "drift":
         overrides.append(f"steps={drift_steps}")
-    if row in ("drift", "indirect_known"):
+    if row == "roughness_alone":
+        preset = resolve_config("cpu", [f"steps={steps}"] if steps is not None else [])
+        overrides.append(f"steps={round(preset.steps * (1 - preset.roughness_warmup))}")
+    if row in ("drift", "roughness_alone", "indirect_known"):
         overrides.append("unobserved=false")                        # no cache to keep consistent
-    if row in ("drift", "light_known"):
-        overrides += ["light_prior=0", "light_solve_every=0"]       # a prior on, or a solve of, a light not fitted
+    if row in ("drift", "roughness_alone", "light_known"):
+        overrides += ["light_prior=0", "light_solve_every=0"]     # a prior on, or a solve of, a light not fitted
     cfg = resolve_config("cpu", overrides)
     session = prepare_fit(cfg, data, device=device)
     cfg, model, geometry = session.config, session.model, session.geometry
-    if row in ("drift", "material_known"):
-        model.material = TrueMaterial(MaterialOnMesh(load_material(data), geometry), session.box, row == "drift",
-                                      cfg.brdf)
-    if row in ("drift", "light_known"):
+    if row in ("drift", "roughness_alone", "material_known"):
+        model.material = TrueMaterial(MaterialOnMesh(load_material(data), geometry), session.box, row != "material_known",
+                                      cfg.brdf, 0.5 if row == "roughness_alone" else None)
+    if row in ("drift", "roughness_alone", "light_known"):
         model.env = TrueEnvironment(true_environment(data, device))
-    if row in ("drift", "indirect_known"):
+    if row in ("drift", "roughness_alone", "indirect_known"):
         model.cache = TracedIndirect(geometry, seed=seed)
         model.cache.bind(model)
     trainer = Trainer(cfg, model, geometry, session.pixels, device)
@@ -267,7 +276,7 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
     test = load_scene(data, "test")
     means = evaluate_run(fitted, test, out / "eval", eval_spp, torch.Generator(device=device).manual_seed(0))["masked"]
     means["fit_s"] = fit_s
-    if row == "drift":
+    if row in ("drift", "roughness_alone"):
         means.update(drift_figures(model, test, geometry))
     return means
 

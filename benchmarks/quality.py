@@ -65,8 +65,9 @@ def relight_one(data: Path, name: str, spp: int) -> None:
     """``nefii relight`` of the scene's full-model run under each of its relighting environments."""
     run = run_dir(name, "full")
     for env in sorted((data / "relight").glob("*.exr")):
-        done = run / "relight" / "metrics.json"
-        if done.exists() and env.stem in json.loads(done.read_text()):
+        done, record = run / "relight" / "metrics.json", run / "relight" / env.stem / "render.json"
+        if (done.exists() and env.stem in json.loads(done.read_text()) and record.exists()
+                and json.loads(record.read_text()).get("spp") == spp):
             continue
         subprocess.run([sys.executable, "-m", "nefii.cli.main", "relight", str(run), "--envmap", str(env), "--spp",
                         str(spp), "--quiet"], check=True, capture_output=True)
@@ -126,7 +127,8 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--threads", type=int, default=None, help="threads per fit (default: 1 with --jobs > 1, else all)")
     ap.add_argument("--set", dest="extra", action="append", default=[])
-    ap.add_argument("--relight-spp", type=int, default=32, help="paths per pixel of the relighting (0: skip it)")
+    ap.add_argument("--relight-spp", type=int, default=256,
+                    help="paths per pixel of the relighting, default `nefii relight`'s own (0: skip it)")
     args = ap.parse_args()
     datas = {s: scene(s, args.res, args.views, args.test_views) for s in args.scenes}
     threads = args.threads if args.threads is not None else (1 if args.jobs > 1 else 0)

@@ -21,13 +21,16 @@ def tiny_scene(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("row", ["drift", "light_known", "material_known", "indirect_known", "full"])
+@pytest.mark.parametrize("row", ["drift", "roughness_alone", "light_known", "material_known", "indirect_known", "full"])
 def test_every_fit_row_runs_and_scores(row, tiny_scene, tmp_path):
     from benchmarks.error_budget import fit_row
 
     scores = fit_row(tiny_scene, row, 0, tmp_path / row, steps=3, drift_steps=3, eval_spp=1,
                      device=torch.device("cpu"), extra=["batch_pixels=64", "unobserved_points=64",
-                                                        "background_pixels=16", "secondary_buffer=4096"])
+                                                        "background_pixels=16", "secondary_buffer=4096",
+                                                        # the light solve due at every step (the true-light rows
+                                                        # must turn it off: it solves SG amplitudes)
+                                                        "light_solve_every=1", "light_solve_pixels=64"])
     assert math.isfinite(scores["albedo_psnr"]) and math.isfinite(scores["roughness_mse"])
-    if row == "drift":
+    if row in ("drift", "roughness_alone"):
         assert math.isfinite(scores["drift_glossy"]) or math.isfinite(scores["drift_rough"])
