@@ -76,6 +76,14 @@ class PathTraced:
     """secondary hits ``(x', n', -w)``: where the cache was queried"""
 
 
+def two_point_pair(traced: PathTraced, half: int) -> PathTraced:
+    """A batch traced at two points of each of ``half`` pixels (the first ``half`` points, then the second) as
+    one estimate per pixel: the two points' mean, and the two as its independent pair."""
+    first, second = (RadianceEstimate(traced.radiance.diffuse[s], traced.radiance.specular[s])
+                     for s in (slice(None, half), slice(half, None)))
+    return PathTraced(mean_of_pair((first, second), 2), (first, second), traced.secondary)
+
+
 def _estimate(samples: DirectionSamples, material: Material, n: Tensor, L_i: Tensor
               ) -> tuple[RadianceEstimate, tuple[RadianceEstimate, RadianceEstimate] | None]:
     N = samples.num_estimator_samples

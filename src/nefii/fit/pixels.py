@@ -29,15 +29,25 @@ class Pixels:
     """the training view each object pixel is from"""
     bg_view: Int[Tensor, "Q"]
     """the training view each background pixel is from"""
+    footprint: SurfacePoints
+    """(F P) the object pixels' hits at the :data:`FOOTPRINT_GRID` positions, position-major (``k P + i``: position
+    ``k`` of pixel ``i``); where a position's ray misses the geometry, the pixel's centre hit"""
 
     def select(self, obj: Tensor, bg: Tensor) -> "Pixels":
         """The object pixels ``obj`` and background pixels ``bg`` (index tensors)."""
+        k = torch.arange(len(FOOTPRINT_GRID), device=obj.device)
+        at = (k[:, None] * len(self.points) + obj[None]).reshape(-1)
         return Pixels(self.points[obj], self.rgb[obj], self.bg_dirs[bg], self.bg_rgb[bg], self.view[obj],
-                      self.bg_view[bg])
+                      self.bg_view[bg], self.footprint[at])
+
+    def at_footprint(self, k: Int[Tensor, "P"]) -> SurfacePoints:
+        """Each object pixel ``i``'s hit at footprint position ``k[i]``."""
+        return self.footprint[k * len(self.points) + torch.arange(len(self.points), device=k.device)]
 
     def to(self, device: torch.device | str) -> "Pixels":
         return Pixels(self.points.map(lambda t: t.to(device)), self.rgb.to(device), self.bg_dirs.to(device),
-                      self.bg_rgb.to(device), self.view.to(device), self.bg_view.to(device))
+                      self.bg_rgb.to(device), self.view.to(device), self.bg_view.to(device),
+                      self.footprint.map(lambda t: t.to(device)))
 
 
 def view_rays(scene: SceneData, view: int) -> tuple[Float[Tensor, "H W 3"], Float[Tensor, "H W 3"]]:
@@ -45,6 +55,12 @@ def view_rays(scene: SceneData, view: int) -> tuple[Float[Tensor, "H W 3"], Floa
     o, d = pixel_rays(scene.cameras.c2w[view], scene.cameras.K[view], scene.height, scene.width)
     return o.float(), d.float()
 
+
+FOOTPRINT_GRID = ((0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75))
+"""where in a pixel (fractions of its width and height) the fit's rays start: the centres of a 2 x 2 grid over
+it. Each ground-truth pixel averages its whole footprint; one ray through its centre sees one normal where a
+curved surface's pixel spans several degrees, and a sharp highlight spread over the pixel is then matched only
+by a rougher lobe (docs/experiments.md, 2026-11-27, sixth session)"""
 
 FOOTPRINT = ((0.05, 0.05), (0.95, 0.05), (0.05, 0.95), (0.95, 0.95))
 """where in a pixel (fractions of its width and height) its footprint is probed besides the centre"""
@@ -73,7 +89,7 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
     pixels where mask and geometry disagree (silhouette errors, anti-aliased edges), and clipped pixels
     (their true colour is unknown: fitting them as if the scene were that bright would darken a sun's
     highlight)."""
-    pts, rgb, bg_d, bg_c, views, bg_views = [], [], [], [], [], []
+    pts, rgb, bg_d, bg_c, views, bg_views, grid = [], [], [], [], [], [], []
     for v in range(len(scene)):
         o, d = view_rays(scene, v)
         hit = geometry.intersect(Rays(o.reshape(-1, 3), d.reshape(-1, 3)))
@@ -89,7 +105,9 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
             keep = ~scene.clipped[v].reshape(-1)
             obj, bg = obj & keep, bg & keep
         dirs = d.reshape(-1, 3)
-        pts.append(SurfacePoints.from_hit(hit, obj, -dirs[obj]))
+        centre = SurfacePoints.from_hit(hit, obj, -dirs[obj])
+        pts.append(centre)
+        grid.append([_footprint_hits(scene, geometry, v, obj, centre, u) for u in FOOTPRINT_GRID])
         rgb.append(colour[obj])
         bg_d.append(dirs[bg])
         bg_c.append(colour[bg])
@@ -98,4 +116,21 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
     points = SurfacePoints.cat(pts)
     if len(points) == 0:
         raise InputError(scene.root, "no training pixel sees the geometry: do the cameras, masks and mesh agree?")
-    return Pixels(points, torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c), torch.cat(views), torch.cat(bg_views))
+    footprint = SurfacePoints.cat([SurfacePoints.cat([g[k] for g in grid]) for k in range(len(FOOTPRINT_GRID))])
+    return Pixels(points, torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c), torch.cat(views), torch.cat(bg_views),
+                  footprint)
+
+
+def _footprint_hits(scene: SceneData, geometry: Geometry, view: int, obj: Bool[Tensor, "HW"],
+                    centre: SurfacePoints, u: tuple[float, float]) -> SurfacePoints:
+    """The hits of the rays through position ``u`` of the object pixels ``obj`` of ``view``; ``centre`` (their
+    centre hits) where such a ray misses."""
+    pixel = obj.nonzero()[:, 0]
+    o, d = jittered_pixel_rays(scene.cameras.c2w[view], scene.cameras.K[view], scene.width, pixel,
+                               torch.tensor(u, dtype=torch.float64).expand(len(pixel), 2))
+    d = d.float()
+    hit = geometry.intersect(Rays(o.float(), d))
+    at = SurfacePoints.from_hit(hit, slice(None), -d)
+    ok = hit.valid
+    return at if bool(ok.all()) else SurfacePoints.cat([at, centre]).map(
+        lambda t: torch.where(ok.view(-1, *[1] * (t.dim() - 1)), t[:len(ok)], t[len(ok):]))

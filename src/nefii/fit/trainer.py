@@ -30,8 +30,8 @@ from .light_solve import (average_quadratic, background_quadratic, linear_term, 
 from .losses import (Gains, LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, smoothness, tonemap_slope,
                      unobserved_loss)
 from .model import NeFIIModel, decode_material
-from .path_trace import SurfacePoints, Transport, path_trace, sample_directions
-from .pixels import Pixels
+from .path_trace import PathTraced, SurfacePoints, Transport, path_trace, sample_directions, two_point_pair
+from .pixels import FOOTPRINT_GRID, Pixels
 from .policies import Alternation, LightSolveSchedule, PriorFade, RoughnessWarmup
 
 LIGHT_SOLVE_SAMPLES = 32
@@ -102,15 +102,27 @@ class Trainer:
         return px.select(i, j)
 
     def _trace(self, pts: SurfacePoints, rough: float | None, train_roughness: bool = True,
-               environment: Callable[[Tensor], Tensor] | None = None):
+               environment: Callable[[Tensor], Tensor] | None = None, num_samples: int | None = None):
         """The material at ``pts`` and the estimator's colour there (Eq. 2-4); with ``train_roughness`` False
         the estimate's gradient reaches the albedo but not the roughness. ``environment``: see ``path_trace``."""
         material = decode_material(self.model, pts.position, pts.lookup_normal, rough)
         if not train_roughness:
             material = Material(material.albedo, material.roughness.detach(), material.brdf)
-        traced = path_trace(self.model, self.geometry, pts, material, self.cfg.num_samples, self.generator,
+        traced = path_trace(self.model, self.geometry, pts, material, num_samples or self.cfg.num_samples, self.generator,
                             self.transport, environment=environment)
         return material, traced
+
+    def _trace_footprint(self, batch: Pixels, rough: float | None) -> tuple[SurfacePoints, Material, PathTraced]:
+        """Each pixel of ``batch`` estimated at two of its footprint positions drawn independently, half the
+        samples at each: their mean is an estimate of the pixel's average over its footprint, as the image
+        records it, and the two are the independent pair the ``l2_pair`` loss needs. Returns the first
+        position's points and material (for the cache's term and the priors) and the pair's estimate."""
+        B, F = len(batch.points), len(FOOTPRINT_GRID)
+        first = batch.at_footprint(torch.randint(F, (B,), generator=self.generator, device=self.device))
+        second = batch.at_footprint(torch.randint(F, (B,), generator=self.generator, device=self.device))
+        material, traced = self._trace(SurfacePoints.cat([first, second]), rough,
+                                       num_samples=max(self.cfg.num_samples // 2, 1))
+        return first, Material(material.albedo[:B], material.roughness[:B], material.brdf), two_point_pair(traced, B)
 
     def _consistency_light(self) -> Callable[[Tensor], Tensor] | None:
         """The environment's radiance as Eq. 8 trains it (``FitConfig.unobserved_light``); None: as it is."""
@@ -166,8 +178,7 @@ class Trainer:
         else:
             # ---- Eq. 7: a batch of observed pixels and background pixels
             batch = self._observed_batch()
-            pts = batch.points
-            material, traced = self._trace(pts, rough)
+            pts, material, traced = self._trace_footprint(batch, rough)
             smooth = None
             if self.prior.active:
                 near = self.prior.neighbours(pts.position, pts.normal, self.generator)

@@ -1,0 +1,69 @@
+"""The fit's pixels as footprints: hits at a 2 x 2 grid inside each pixel, and the two-point pair estimate."""
+from __future__ import annotations
+
+import torch
+
+from fit_fixtures import scene_mesh, write_rendered_scene
+from nefii.data import load_scene
+from nefii.fit.path_trace import PathTraced, SurfacePoints, two_point_pair
+from nefii.fit.pixels import FOOTPRINT_GRID, first_hits
+from nefii.raycast import MeshGeometry
+from nefii.render.estimator import RadianceEstimate
+
+
+def _pixel_coordinates(x: torch.Tensor, c2w: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Continuous pixel coordinates (OpenCV: pixel ``(j, i)`` spans ``[j, j + 1) x [i, i + 1)``) of world points."""
+    w2c = torch.linalg.inv(c2w.double())
+    p = x.double() @ w2c[:3, :3].T + w2c[:3, 3]
+    return torch.stack([K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]], -1)
+
+
+def test_footprint_hits_sit_at_the_grid_inside_their_pixel(tmp_path):
+    scene = load_scene(write_rendered_scene(tmp_path / "s", res=16, n_train=2, n_test=1))
+    mesh = scene_mesh()
+    px = first_hits(scene, MeshGeometry(mesh.vertices, mesh.faces))
+    P, F = len(px.points), len(FOOTPRINT_GRID)
+    assert len(px.footprint) == F * P
+    c2w, K = scene.cameras.c2w[0], scene.cameras.K[0].double()
+    mine = (px.view == 0).nonzero()[:, 0]
+    centre = _pixel_coordinates(px.points.position[mine], c2w, K)
+    base = torch.floor(centre)                        # the pixel each object pixel's centre ray went through
+    torch.testing.assert_close(centre - base, torch.full_like(centre, 0.5), atol=1e-3, rtol=0)
+    moved = 0
+    for k, u in enumerate(FOOTPRINT_GRID):
+        at = px.footprint[k * P + mine]
+        xy = _pixel_coordinates(at.position, c2w, K)
+        on_grid = ((xy - base - torch.tensor(u, dtype=xy.dtype)).abs() < 1e-3).all(-1)
+        is_centre = (at.position == px.points.position[mine]).all(-1)
+        assert bool((on_grid | is_centre).all())      # at the grid position, or the centre where that ray missed
+        moved += int(on_grid.sum())
+        # the view direction is the ray's own
+        torch.testing.assert_close(at.wo.norm(dim=-1), torch.ones(len(mine)), atol=1e-5, rtol=0)
+    assert moved > 0.9 * F * len(mine)
+
+
+def test_select_and_at_footprint_index_the_same_pixels(tmp_path):
+    scene = load_scene(write_rendered_scene(tmp_path / "s", res=16, n_train=2, n_test=1))
+    mesh = scene_mesh()
+    px = first_hits(scene, MeshGeometry(mesh.vertices, mesh.faces))
+    P = len(px.points)
+    idx = torch.tensor([P - 1, 0, P // 2, 0])
+    batch = px.select(idx, torch.zeros(0, dtype=torch.long))
+    k = torch.tensor([3, 0, 2, 1])
+    want = px.footprint[k * P + idx]
+    torch.testing.assert_close(batch.at_footprint(k).position, want.position, rtol=0, atol=0)
+    torch.testing.assert_close(batch.at_footprint(k).normal, want.normal, rtol=0, atol=0)
+
+
+def test_two_point_pair_splits_halves_and_averages():
+    B = 5
+    g = torch.Generator().manual_seed(0)
+    diffuse, specular = torch.rand(2 * B, 3, generator=g), torch.rand(2 * B, 3, generator=g)
+    pts = SurfacePoints(*(torch.rand(7, 3, generator=g) for _ in range(5)))
+    traced = PathTraced(RadianceEstimate(diffuse, specular), None, pts)
+    out = two_point_pair(traced, B)
+    a, b = out.pair
+    torch.testing.assert_close(a.rgb, diffuse[:B] + specular[:B])
+    torch.testing.assert_close(b.rgb, diffuse[B:] + specular[B:])
+    torch.testing.assert_close(out.radiance.rgb, 0.5 * (a.rgb + b.rgb))
+    assert out.secondary is pts
