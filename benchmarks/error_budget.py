@@ -61,7 +61,8 @@ from nefii.render.equirect import pixel_directions
 
 from .common import code_version, machine, stamp, write_results
 
-ROWS = ("truth_point", "truth_filtered", "floor", "drift", "roughness_alone", "light_known", "material_known", "indirect_known", "full", "constant")
+ROWS = ("truth_point", "truth_filtered", "floor", "drift", "roughness_alone", "light_known", "material_known",
+        "indirect_known", "full", "constant")
 GLOSSY = 0.3
 """true roughness below this counts as glossy in the drift figures"""
 
@@ -259,8 +260,8 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
     session = prepare_fit(cfg, data, device=device)
     cfg, model, geometry = session.config, session.model, session.geometry
     if row in ("drift", "roughness_alone", "material_known"):
-        model.material = TrueMaterial(MaterialOnMesh(load_material(data), geometry), session.box, row != "material_known",
-                                      cfg.brdf, 0.5 if row == "roughness_alone" else None)
+        model.material = TrueMaterial(MaterialOnMesh(load_material(data), geometry), session.box,
+                                      row != "material_known", cfg.brdf, 0.5 if row == "roughness_alone" else None)
     if row in ("drift", "roughness_alone", "light_known"):
         model.env = TrueEnvironment(true_environment(data, device))
     if row in ("drift", "roughness_alone", "indirect_known"):

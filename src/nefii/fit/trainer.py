@@ -108,8 +108,8 @@ class Trainer:
         material = decode_material(self.model, pts.position, pts.lookup_normal, rough)
         if not train_roughness:
             material = Material(material.albedo, material.roughness.detach(), material.brdf)
-        traced = path_trace(self.model, self.geometry, pts, material, num_samples or self.cfg.num_samples, self.generator,
-                            self.transport, environment=environment)
+        traced = path_trace(self.model, self.geometry, pts, material, num_samples or self.cfg.num_samples,
+                            self.generator, self.transport, environment=environment)
         return material, traced
 
     def _trace_footprint(self, batch: Pixels, rough: float | None) -> tuple[SurfacePoints, Material, PathTraced]:
