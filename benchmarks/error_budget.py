@@ -49,6 +49,7 @@ from nefii.fields.mlp import mlp
 from nefii.fit.config import resolve_config
 from nefii.fit.model import NeFIIModel, decode_material
 from nefii.fit.outputs import FittedRun
+from nefii.fit.policies import RoughnessWarmup
 from nefii.fit.session import prepare_fit
 from nefii.fit.trainer import Trainer
 from nefii.raycast import MeshGeometry, Rays
@@ -261,7 +262,8 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
     cfg, model, geometry = session.config, session.model, session.geometry
     if row in ("drift", "roughness_alone", "material_known"):
         model.material = TrueMaterial(MaterialOnMesh(load_material(data), geometry), session.box,
-                                      row != "material_known", cfg.brdf, 0.5 if row == "roughness_alone" else None)
+                                      row != "material_known", cfg.brdf,
+                                      RoughnessWarmup(0).value if row == "roughness_alone" else None)
     if row in ("drift", "roughness_alone", "light_known"):
         model.env = TrueEnvironment(true_environment(data, device))
     if row in ("drift", "roughness_alone", "indirect_known"):

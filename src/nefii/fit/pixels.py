@@ -1,7 +1,7 @@
 """First hits of every training pixel, cast once and cached (secondary rays are cast every step)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from jaxtyping import Bool, Float, Int
@@ -66,17 +66,19 @@ FOOTPRINT = ((0.05, 0.05), (0.95, 0.05), (0.05, 0.95), (0.95, 0.95))
 """where in a pixel (fractions of its width and height) its footprint is probed besides the centre"""
 
 
+def rays_at(scene: SceneData, view: int, pixel: Int[Tensor, "P"], u: tuple[float, float]) -> Rays:
+    """Float32 rays of ``view`` through position ``u`` (fractions of a pixel's width and height) of the flat
+    pixels ``pixel``."""
+    o, d = jittered_pixel_rays(scene.cameras.c2w[view], scene.cameras.K[view], scene.width, pixel,
+                               torch.tensor(u, dtype=torch.float64).expand(len(pixel), 2))
+    return Rays(o.float(), d.float())
+
+
 def footprint_hits(scene: SceneData, geometry: Geometry, view: int) -> Bool[Tensor, "K HW"]:
     """Whether rays near each corner of every pixel of ``view`` hit the geometry (one row per corner of
     :data:`FOOTPRINT`)."""
-    n = scene.height * scene.width
-    pixel = torch.arange(n)
-    rows = []
-    for u in FOOTPRINT:
-        o, d = jittered_pixel_rays(scene.cameras.c2w[view], scene.cameras.K[view], scene.width, pixel,
-                                   torch.tensor(u, dtype=torch.float64).expand(n, 2))
-        rows.append(geometry.intersect(Rays(o.float(), d.float())).valid)
-    return torch.stack(rows)
+    pixel = torch.arange(scene.height * scene.width)
+    return torch.stack([geometry.intersect(rays_at(scene, view, pixel, u)).valid for u in FOOTPRINT])
 
 
 def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
@@ -107,7 +109,7 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
         dirs = d.reshape(-1, 3)
         centre = SurfacePoints.from_hit(hit, obj, -dirs[obj])
         pts.append(centre)
-        grid.append([_footprint_hits(scene, geometry, v, obj, centre, u) for u in FOOTPRINT_GRID])
+        grid.append([_grid_hits(scene, geometry, v, obj, centre, u) for u in FOOTPRINT_GRID])
         rgb.append(colour[obj])
         bg_d.append(dirs[bg])
         bg_c.append(colour[bg])
@@ -121,16 +123,12 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
                   footprint)
 
 
-def _footprint_hits(scene: SceneData, geometry: Geometry, view: int, obj: Bool[Tensor, "HW"],
-                    centre: SurfacePoints, u: tuple[float, float]) -> SurfacePoints:
+def _grid_hits(scene: SceneData, geometry: Geometry, view: int, obj: Bool[Tensor, "HW"], centre: SurfacePoints,
+               u: tuple[float, float]) -> SurfacePoints:
     """The hits of the rays through position ``u`` of the object pixels ``obj`` of ``view``; ``centre`` (their
     centre hits) where such a ray misses."""
-    pixel = obj.nonzero()[:, 0]
-    o, d = jittered_pixel_rays(scene.cameras.c2w[view], scene.cameras.K[view], scene.width, pixel,
-                               torch.tensor(u, dtype=torch.float64).expand(len(pixel), 2))
-    d = d.float()
-    hit = geometry.intersect(Rays(o.float(), d))
-    at = SurfacePoints.from_hit(hit, slice(None), -d)
-    ok = hit.valid
-    return at if bool(ok.all()) else SurfacePoints.cat([at, centre]).map(
-        lambda t: torch.where(ok.view(-1, *[1] * (t.dim() - 1)), t[:len(ok)], t[len(ok):]))
+    rays = rays_at(scene, view, obj.nonzero()[:, 0], u)
+    hit = geometry.intersect(rays)
+    at, keep = SurfacePoints.from_hit(hit, slice(None), -rays.directions), hit.valid.unsqueeze(-1)
+    return SurfacePoints(*(torch.where(keep, getattr(at, f.name), getattr(centre, f.name))
+                           for f in fields(SurfacePoints)))
