@@ -8,6 +8,8 @@ import sys
 import time
 from pathlib import Path
 
+import torch
+
 from ..errors import InputError
 from ..fit.config import PRESETS, FitConfig, resolve_config
 from ..fit.distributed import DistContext, init_distributed, local_device, parameter_checksums, shutdown
@@ -75,6 +77,7 @@ def _warn(line: str) -> None:
 
 def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: RunManifest | None) -> int:
     out: Path = args.out
+    started = time.time()
     cfg = resumed_config(args, cfg)
     device = local_device(pick_device(args.device), ctx)
     threads = set_threads(cfg.threads)
@@ -127,7 +130,9 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: R
         stats = {"steps": trainer.step, "steps_this_session": trainer.step - step0, "wall_s_this_session": wall,
                  "steps_per_s": (trainer.step - step0) / max(wall, 1e-9), "processes": ctx.world_size,
                  "threads": threads, "device": str(device),
-                 "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+                 "setup_s": t0 - started, "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+        if device.type == "cuda":
+            stats["peak_gpu_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
         write_text_atomic(out / "fit_stats.json", json.dumps(stats, indent=2) + "\n")
         written = [n for n in ("model.pt", "envmap.exr", "sg.npy", "config.json", "fit_stats.json")
                    if (out / n).exists()]

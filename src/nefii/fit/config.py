@@ -64,7 +64,7 @@ class LightConfig:
 
 @dataclass
 class FitConfig:
-    preset: Literal["cpu", "paper", "tiny"] = "cpu"
+    preset: Literal["cpu", "gpu", "paper", "tiny"] = "cpu"
     """the preset these values started from"""
     steps: Annotated[int, Range(1)] = 3000
     """optimisation steps (observed and unobserved together)"""
@@ -224,6 +224,12 @@ PRESETS: dict[str, dict[str, Any]] = {
     "cpu": {"material": {"encoding": {"max_resolution": 128}}, "material_offset": 0.04,
             "material_offset_reconstructed": 0.04, "normal_smoothing_reconstructed": 0.005,
             "lookup_smoothing_reconstructed": 0.04},
+    "gpu": {"batch_pixels": 8192, "background_pixels": 2048, "num_samples": 16, "unobserved_points": 8192,
+            "secondary_buffer": 1 << 19, "light_solve_pixels": 32768,
+            "material": {"encoding": {"max_resolution": 512, "log2_table_size": 18}},
+            "cache": {"encoding": {"log2_table_size": 18}},
+            "material_offset": 0.04, "material_offset_reconstructed": 0.04, "normal_smoothing_reconstructed": 0.005,
+            "lookup_smoothing_reconstructed": 0.04},
     "paper": {
         "steps": 60000, "batch_pixels": 2048, "num_samples": 64, "lr": 5e-4, "lr_light": 5e-3,
         "tonemap": "none", "loss": "l1", "smooth_albedo": 0.0, "light_prior": 0.0, "light_solve_every": 0,
@@ -243,7 +249,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
 }
 """``cpu``: designed for 2 CPU cores (hash grids, small MLPs, N = 8; the side-aware material offset, and on a
-reconstruction the lookup's normals smoothed so the offset does not carry its normal noise); ``paper``: the
+reconstruction the lookup's normals smoothed so the offset does not carry its normal noise); ``gpu``: the ``cpu``
+preset's method at 16 times its samples per step (8 times the pixels, N = 16) and a material grid fine enough for
+512 x 512 views, for one GPU (benchmarks/results/gpu.md); ``paper``: the
 paper's networks and sample counts and the official code's BRDF, for a GPU; ``tiny``: tests. What each choice measured is logged in
 docs/experiments.md."""
 

@@ -77,7 +77,8 @@ class MeshGeometry:
                  threads: int | None = None, lookup_normals: np.ndarray | None = None) -> None:
         """``normals``: unit vertex (shading) normals, default area-weighted; ``lookup_normals``: unit vertex
         normals along which the material field's lookup is offset (:attr:`SurfaceHit.lookup_normal`), default
-        the shading normals."""
+        the shading normals. ``threads``: Embree's threads, default every core this process may use (a GPU fit
+        casts its rays on the host's cores)."""
         from embreex import rtcore_scene as rtcs
         from embreex.mesh_construction import TriangleMesh
 
@@ -96,7 +97,7 @@ class MeshGeometry:
         lo, hi = self.vertices.min(0), self.vertices.max(0)
         self.bounds = (lo, hi)
         self.scale = float(np.linalg.norm(hi - lo))
-        self.threads = threads or max(1, min(4, len(os.sched_getaffinity(0))))
+        self.threads = threads or len(os.sched_getaffinity(0))
         self._scene = rtcs.EmbreeScene()
         TriangleMesh(self._scene, self.vertices, self.faces)
         self._vertices_t = torch.from_numpy(self.vertices)
