@@ -135,3 +135,13 @@ def test_the_schedule_and_the_configs():
 def test_no_solve_for_a_loss_it_does_not_minimise(tiny_scene):
     assert not any(_trainer(tiny_scene, "loss=l1", "light_solve_every=1").light_solve.due(k) for k in range(20))
     assert any(_trainer(tiny_scene, "light_solve_every=1").light_solve.due(k) for k in range(20))
+
+
+def test_a_linear_term_lives_on_its_coefficients_device():
+    """The light prior's term is added to quadratics built on the fit's device (a CPU-only zero matrix broke the
+    first solve of a CUDA fit); ``meta`` tensors check the device without a GPU."""
+    q = linear_term(torch.ones(5, device="meta"))
+    assert q.A.device.type == "meta" and q.r.device.type == "meta" and q.A.shape == (3, 5, 5)
+    total = q + Quadratic(torch.zeros(3, 5, 5, dtype=torch.float64, device="meta"),
+                          torch.zeros(3, 5, dtype=torch.float64, device="meta"))
+    assert total.A.device.type == "meta"

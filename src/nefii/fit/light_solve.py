@@ -120,7 +120,7 @@ def background_quadratic(sg: SGMixture, dirs: Float[Tensor, "Q 3"], target: Floa
 def linear_term(coefficient: Float[Tensor, " K"], channels: int = 3) -> Quadratic:
     """``sum_k p_k x_ck`` in every channel's objective as a :class:`Quadratic` (a zero ``A``, ``r = -p / 2``)."""
     K = len(coefficient)
-    return Quadratic(torch.zeros(channels, K, K, dtype=torch.float64),
+    return Quadratic(torch.zeros(channels, K, K, dtype=torch.float64, device=coefficient.device),
                      -0.5 * coefficient.double().expand(channels, K).clone())
 
 
