@@ -91,7 +91,7 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
     pixels where mask and geometry disagree (silhouette errors, anti-aliased edges), and clipped pixels
     (their true colour is unknown: fitting them as if the scene were that bright would darken a sun's
     highlight)."""
-    pts, rgb, bg_d, bg_c, views, bg_views, grid = [], [], [], [], [], [], []
+    pts, rgb, bg_d, bg_c, views, bg_views, objs = [], [], [], [], [], [], []
     for v in range(len(scene)):
         o, d = view_rays(scene, v)
         hit = geometry.intersect(Rays(o.reshape(-1, 3), d.reshape(-1, 3)))
@@ -109,18 +109,36 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
         dirs = d.reshape(-1, 3)
         centre = SurfacePoints.from_hit(hit, obj, -dirs[obj])
         pts.append(centre)
-        grid.append([_grid_hits(scene, geometry, v, obj, centre, u) for u in FOOTPRINT_GRID])
+        objs.append(obj)
         rgb.append(colour[obj])
         bg_d.append(dirs[bg])
         bg_c.append(colour[bg])
         views.append(torch.full((int(obj.sum()),), v, dtype=torch.long))
         bg_views.append(torch.full((int(bg.sum()),), v, dtype=torch.long))
-    points = SurfacePoints.cat(pts)
-    if len(points) == 0:
+    total = sum(len(c) for c in pts)
+    if total == 0:
         raise InputError(scene.root, "no training pixel sees the geometry: do the cameras, masks and mesh agree?")
-    footprint = SurfacePoints.cat([SurfacePoints.cat([g[k] for g in grid]) for k in range(len(FOOTPRINT_GRID))])
-    return Pixels(points, torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c), torch.cat(views), torch.cat(bg_views),
-                  footprint)
+    footprint = _footprint(scene, geometry, objs, pts, total)
+    return Pixels(SurfacePoints.cat(pts), torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c), torch.cat(views),
+                  torch.cat(bg_views), footprint)
+
+
+def _footprint(scene: SceneData, geometry: Geometry, objs: list[Bool[Tensor, "HW"]], centres: list[SurfacePoints],
+               total: int) -> SurfacePoints:
+    """:attr:`Pixels.footprint` of all views: written view by view into tensors allocated once, since the per-view
+    pieces and their concatenation would hold it twice over (on a 100-view 512 x 512 capture the footprint is
+    2 GiB)."""
+    F, out, start = len(FOOTPRINT_GRID), None, 0
+    for v, (obj, centre) in enumerate(zip(objs, centres)):
+        for k, u in enumerate(FOOTPRINT_GRID):
+            part = _grid_hits(scene, geometry, v, obj, centre, u)
+            if out is None:
+                out = part.map(lambda t: t.new_empty((F * total, *t.shape[1:])))
+            for f in fields(SurfacePoints):
+                getattr(out, f.name)[k * total + start:k * total + start + len(centre)] = getattr(part, f.name)
+        start += len(centre)
+    assert out is not None
+    return out
 
 
 def _grid_hits(scene: SceneData, geometry: Geometry, view: int, obj: Bool[Tensor, "HW"], centre: SurfacePoints,
