@@ -1,10 +1,13 @@
 """The fit's pixels as footprints: hits at a 2 x 2 grid inside each pixel, and the two-point pair estimate."""
 from __future__ import annotations
 
+import pytest
 import torch
 
+import nefii.fit.pixels as pixels
 from fit_fixtures import scene_mesh, write_rendered_scene
 from nefii.data import load_scene
+from nefii.errors import InputError
 from nefii.fit.path_trace import PathTraced, SurfacePoints, two_point_pair
 from nefii.fit.pixels import FOOTPRINT_GRID, first_hits
 from nefii.raycast import MeshGeometry
@@ -67,3 +70,17 @@ def test_two_point_pair_splits_halves_and_averages():
     torch.testing.assert_close(b.rgb, diffuse[B:] + specular[B:])
     torch.testing.assert_close(out.radiance.rgb, 0.5 * (a.rgb + b.rgb))
     assert out.secondary is pts
+
+
+def test_first_hits_that_would_not_fit_in_memory_are_refused_with_the_data_named(tmp_path, monkeypatch):
+    root = write_rendered_scene(tmp_path / "s", res=16, n_train=2, n_test=1)
+    scene, mesh = load_scene(root), scene_mesh()
+    geometry = MeshGeometry(mesh.vertices, mesh.faces)
+    P = len(first_hits(scene, geometry).points)
+    per_point = 4 * 3 * 5                            # five float32 vectors a surface point
+    monkeypatch.setattr(pixels, "host_memory_bytes", lambda: (len(FOOTPRINT_GRID) + 2) * P * per_point - 1)
+    with pytest.raises(InputError, match=f"first hits of {P} object pixels .* max_image_side") as err:
+        first_hits(scene, geometry)
+    assert str(root.name) in str(err.value)
+    monkeypatch.setattr(pixels, "host_memory_bytes", lambda: (len(FOOTPRINT_GRID) + 2) * P * per_point)
+    assert len(first_hits(scene, geometry).points) == P

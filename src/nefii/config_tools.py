@@ -42,10 +42,15 @@ class Range:
         return f" (wants {lo}x{hi})"
 
 
+def host_memory_bytes() -> int:
+    """This machine's physical memory."""
+    import os
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
 def machine_memory_bytes() -> int:
     """The larger of this machine's physical memory and its largest CUDA device's (where work may run)."""
-    import os
-    host = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    host = host_memory_bytes()
     try:
         import torch
         gpus = [torch.cuda.get_device_properties(i).total_memory for i in range(torch.cuda.device_count())]

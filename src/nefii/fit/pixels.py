@@ -8,6 +8,7 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from ..camera import jittered_pixel_rays, pixel_rays
+from ..config_tools import host_memory_bytes
 from ..data.scene import SceneData
 from ..errors import InputError
 from ..raycast.base import Geometry, Rays
@@ -118,6 +119,14 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
     total = sum(len(c) for c in pts)
     if total == 0:
         raise InputError(scene.root, "no training pixel sees the geometry: do the cameras, masks and mesh agree?")
+    first = next(c for c in pts if len(c))
+    per_point = sum(getattr(first, f.name)[:1].numel() * getattr(first, f.name).element_size()
+                    for f in fields(SurfacePoints))
+    need, have = (len(FOOTPRINT_GRID) + 2) * total * per_point, host_memory_bytes()
+    if need > have:     # the footprint, the centre hits and their concatenation
+        raise InputError(scene.root, f"the first hits of {total} object pixels would need about {need / 2**30:.1f} GiB "
+                                     f"of memory, more than this machine's {have / 2**30:.1f} GiB: use fewer or "
+                                     "smaller training images (--set max_image_side=N)")
     footprint = _footprint(scene, geometry, objs, pts, total)
     return Pixels(SurfacePoints.cat(pts), torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c), torch.cat(views),
                   torch.cat(bg_views), footprint)
