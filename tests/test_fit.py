@@ -317,3 +317,13 @@ def test_more_processes_than_gpus_is_an_input_error(monkeypatch):
     monkeypatch.setenv("LOCAL_RANK", "0")
     assert local_device(torch.device("cuda"), DistContext(rank=1, world_size=2)) == torch.device("cuda", 0)
     assert local_device(torch.device("cpu"), DistContext(rank=1, world_size=2)) == torch.device("cpu")
+
+
+def test_the_gpu_preset_on_the_cpu_says_so_and_still_fits(tiny_scene, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(["fit", str(tiny_scene), "--out", str(run), "--preset", "gpu", "--device", "cpu", "--quiet",
+                 "--set", "steps=2", "--set", "light_solve_every=0"]) == 0
+    assert "the gpu preset on the CPU" in capsys.readouterr().err
+    stats = json.loads((run / "fit_stats.json").read_text())
+    assert stats["steps"] == 2 and stats["setup_s"] > 0 and "peak_gpu_gib" not in stats
+    assert json.loads((run / "config.json").read_text())["batch_pixels"] == 8192
