@@ -27,10 +27,10 @@ SCENE = ("bowl", 512, 100, 8, 64)
 EVAL_SPP = 64
 
 
-def fit(data: Path, out: Path, device: str, extra: list[str], limit_s: float | None) -> int:
+def fit(data: Path, out: Path, device: str, resume: bool, limit_s: float | None) -> int:
     start = time.time()
     cmd = [sys.executable, "-m", "nefii.cli.main", "fit", str(data), "--out", str(out), "--preset", "gpu",
-           "--device", device, "--quiet", *extra]
+           "--device", device, "--quiet", *(["--resume"] if resume else [])]
     try:
         rc = subprocess.run(cmd, timeout=limit_s).returncode
     except subprocess.TimeoutExpired:   # killed; its checkpoints let `fit --resume` go on
@@ -38,7 +38,7 @@ def fit(data: Path, out: Path, device: str, extra: list[str], limit_s: float | N
     finally:    # also when a time limit stops it: a resumed fit adds its sessions' times
         wall = time.time() - start
         record = out / "benchmark_wall.json"
-        before = json.loads(record.read_text()) if extra and record.exists() else {"wall_s": 0.0, "sessions": 0}
+        before = json.loads(record.read_text()) if resume and record.exists() else {"wall_s": 0.0, "sessions": 0}
         if out.is_dir():
             record.write_text(json.dumps({"wall_s": before["wall_s"] + wall, "sessions": before["sessions"] + 1,
                                           "command": cmd[2:]}, indent=2) + "\n")
@@ -68,17 +68,21 @@ def table(gpu_runs: list[Path], cpu_runs: list[Path], data: Path, note: str = ""
             m = scored(run, data)
             got.append((wall, m))
             gpu_mem = f"{stats['peak_gpu_gib']:.2f} GiB" if "peak_gpu_gib" in stats else "-"
-            rows.append(f"| `{preset}` | {cfg['seed']} | {stats['device']}, {stats['threads']} thread{'s' if stats['threads'] != 1 else ''} | "
-                        f"{cfg['batch_pixels']} x {cfg['num_samples']} | {wall / 60:.1f} (set-up {stats['setup_s']:.0f} s) | "
+            threads = f"{stats['threads']} thread" + ("s" if stats["threads"] != 1 else "")
+            rows.append(f"| `{preset}` | {cfg['seed']} | {stats['device']}, {threads} | "
+                        f"{cfg['batch_pixels']} x {cfg['num_samples']} | "
+                        f"{wall / 60:.1f} (set-up {stats['setup_s']:.0f} s) | "
                         f"{stats['steps_per_s']:.2f} | {gpu_mem} | {stats['peak_rss_gib']:.2f} GiB | "
-                        f"{m['albedo_psnr']:.2f} | {m['roughness_mse']:.4f} | {m['specular_psnr']:.2f} | {m['rgb_psnr']:.2f} |")
+                        f"{m['albedo_psnr']:.2f} | {m['roughness_mse']:.4f} | {m['specular_psnr']:.2f} | "
+                        f"{m['rgb_psnr']:.2f} |")
         means[preset] = {k: sum(m[k] for _, m in got) / len(got) for k in ("albedo_psnr", "roughness_mse",
                                                                              "specular_psnr", "rgb_psnr")}
         means[preset]["wall_max"] = max(w for w, _ in got)
     g, c = means["gpu"], means["cpu"]
     lines = [f"# gpu preset ({stamp()})", "",
              f"Scene: {setting['scene']}, {setting['views']} training views {setting['res']}x{setting['res']}, "
-             f"{setting['test_views']} test views; ground-truth mesh, masked test views, `nefii eval --spp {EVAL_SPP}`. "
+             f"{setting['test_views']} test views; ground-truth mesh, masked test views, "
+             f"`nefii eval --spp {EVAL_SPP}`. "
              "Made by `python -m benchmarks.gpu table` from the runs below.", "",
              "| preset | seed | device of the fit | pixels x N a step | `nefii fit` min | steps/s | peak GPU memory | "
              "peak RSS | albedo PSNR | roughness MSE | specular PSNR | RGB PSNR |",
@@ -111,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     data = args.data if args.data is not None else scene(*SCENE)
     if args.verb == "fit":
-        return fit(data, args.out, args.device, ["--resume"] if args.resume else [], args.limit_s)
+        return fit(data, args.out, args.device, args.resume, args.limit_s)
     table(args.gpu, args.cpu, data, args.note)
     return 0
 

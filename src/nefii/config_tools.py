@@ -59,10 +59,10 @@ def machine_memory_bytes() -> int:
     return max([host, *gpus])
 
 
-def check_memory(nbytes: float, what: str, sizes: str) -> None:
-    """Refuse work whose estimated memory, ``nbytes``, exceeds what this machine holds; ``sizes`` names the
-    settings that set it."""
-    have = machine_memory_bytes()
+def check_memory(nbytes: float, what: str, sizes: str, have: int | None = None) -> None:
+    """Refuse work whose estimated memory, ``nbytes``, exceeds what this machine holds (``have``, default
+    :func:`machine_memory_bytes`); ``sizes`` names the settings that set it."""
+    have = machine_memory_bytes() if have is None else have
     if nbytes > have:
         raise ValueError(f"{what} would need about {nbytes / 2**30:.0f} GiB of memory, more than this machine's "
                          f"{have / 2**30:.0f} GiB: lower {sizes}")

@@ -8,7 +8,7 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from ..camera import jittered_pixel_rays, pixel_rays
-from ..config_tools import host_memory_bytes
+from ..config_tools import check_memory, host_memory_bytes
 from ..data.scene import SceneData
 from ..errors import InputError
 from ..raycast.base import Geometry, Rays
@@ -119,34 +119,31 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
     total = sum(len(c) for c in pts)
     if total == 0:
         raise InputError(scene.root, "no training pixel sees the geometry: do the cameras, masks and mesh agree?")
-    first = next(c for c in pts if len(c))
-    per_point = sum(getattr(first, f.name)[:1].numel() * getattr(first, f.name).element_size()
+    per_point = sum(getattr(pts[0], f.name).shape[1:].numel() * getattr(pts[0], f.name).element_size()
                     for f in fields(SurfacePoints))
-    need, have = (len(FOOTPRINT_GRID) + 2) * total * per_point, host_memory_bytes()
-    if need > have:     # the footprint, the centre hits and their concatenation
-        raise InputError(scene.root, f"the first hits of {total} object pixels would need about {need / 2**30:.1f} GiB "
-                                     f"of memory, more than this machine's {have / 2**30:.1f} GiB: use fewer or "
-                                     "smaller training images (--set max_image_side=N)")
-    footprint = _footprint(scene, geometry, objs, pts, total)
+    try:    # the footprint, the centre hits and their concatenation, all on the host
+        check_memory((len(FOOTPRINT_GRID) + 2) * total * per_point, f"the first hits of {total} object pixels",
+                     "the number or size of the training images (--set max_image_side=N)", have=host_memory_bytes())
+    except ValueError as e:
+        raise InputError(scene.root, str(e)) from None
     return Pixels(SurfacePoints.cat(pts), torch.cat(rgb), torch.cat(bg_d), torch.cat(bg_c), torch.cat(views),
-                  torch.cat(bg_views), footprint)
+                  torch.cat(bg_views), _footprint(scene, geometry, objs, pts))
 
 
-def _footprint(scene: SceneData, geometry: Geometry, objs: list[Bool[Tensor, "HW"]], centres: list[SurfacePoints],
-               total: int) -> SurfacePoints:
+def _footprint(scene: SceneData, geometry: Geometry, objs: list[Bool[Tensor, "HW"]],
+               centres: list[SurfacePoints]) -> SurfacePoints:
     """:attr:`Pixels.footprint` of all views: written view by view into tensors allocated once, since the per-view
     pieces and their concatenation would hold it twice over (on a 100-view 512 x 512 capture the footprint is
     2 GiB)."""
-    F, out, start = len(FOOTPRINT_GRID), None, 0
+    F, total, start = len(FOOTPRINT_GRID), sum(len(c) for c in centres), 0
+    out = centres[0].map(lambda t: t.new_empty((F * total, *t.shape[1:])))
     for v, (obj, centre) in enumerate(zip(objs, centres)):
         for k, u in enumerate(FOOTPRINT_GRID):
             part = _grid_hits(scene, geometry, v, obj, centre, u)
-            if out is None:
-                out = part.map(lambda t: t.new_empty((F * total, *t.shape[1:])))
+            at = slice(k * total + start, k * total + start + len(centre))
             for f in fields(SurfacePoints):
-                getattr(out, f.name)[k * total + start:k * total + start + len(centre)] = getattr(part, f.name)
+                getattr(out, f.name)[at] = getattr(part, f.name)
         start += len(centre)
-    assert out is not None
     return out
 
 
