@@ -20,6 +20,8 @@ Rows (each a fit of the ``cpu`` preset, scored by ``nefii.evaluate.run.evaluate_
   images determine the roughness when nothing else is unknown (the ``drift`` columns then read fitted - true);
 * ``light_known``: the true environment, frozen, in place of the 128 SGs;
 * ``material_known``: albedo and roughness frozen at the truth (light and cache are fitted);
+* ``albedo_known``: albedo frozen at the truth, roughness, light and cache fitted as ``full`` fits them: set
+  beside ``light_known`` and ``roughness_alone``, how much of the roughness error the albedo's freedom costs;
 * ``indirect_known``: the radiance cache replaced by tracing further bounces with the current material and
   light (the relight path tracer's transport), to price the cache;
 * ``full``: the ``cpu`` preset as ``nefii fit`` runs it;
@@ -62,8 +64,8 @@ from nefii.render.equirect import pixel_directions
 
 from .common import code_version, machine, stamp, write_results
 
-ROWS = ("truth_point", "truth_filtered", "floor", "drift", "roughness_alone", "light_known", "material_known",
-        "indirect_known", "full", "constant")
+ROWS = ("truth_point", "truth_filtered", "floor", "drift", "roughness_alone", "light_known", "albedo_known",
+        "material_known", "indirect_known", "full", "constant")
 GLOSSY = 0.3
 """true roughness below this counts as glossy in the drift figures"""
 
@@ -107,6 +109,20 @@ class TrueMaterial(nn.Module):
         if roughness_override is not None:
             rough = torch.full_like(rough, roughness_override)
         return Material(m.albedo.to(x), rough, self.brdf)
+
+
+class TrueAlbedo(nn.Module):
+    """The fit's own material field with its albedo replaced by the scene's (its roughness is learned)."""
+
+    def __init__(self, field: nn.Module, lookup: MaterialOnMesh) -> None:
+        super().__init__()
+        self.field, self.lookup = field, lookup
+
+    def forward(self, x: Tensor, normal: Tensor | None = None, roughness_override: float | None = None) -> Material:
+        m = self.field(x, normal, roughness_override=roughness_override)
+        with torch.no_grad():
+            albedo = self.lookup(x.detach(), normal.detach()).albedo.to(x)
+        return Material(albedo, m.roughness, m.brdf)
 
 
 def true_environment(data: Path, device: torch.device, height: int = 256) -> Environment:
@@ -264,6 +280,8 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
         model.material = TrueMaterial(MaterialOnMesh(load_material(data), geometry), session.box,
                                       row != "material_known", cfg.brdf,
                                       RoughnessWarmup(0).value if row == "roughness_alone" else None)
+    if row == "albedo_known":
+        model.material = TrueAlbedo(model.material, MaterialOnMesh(load_material(data), geometry))
     if row in ("drift", "roughness_alone", "light_known"):
         model.env = TrueEnvironment(true_environment(data, device))
     if row in ("drift", "roughness_alone", "indirect_known"):

@@ -21,7 +21,8 @@ def tiny_scene(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("row", ["drift", "roughness_alone", "light_known", "material_known", "indirect_known", "full"])
+@pytest.mark.parametrize("row", ["drift", "roughness_alone", "light_known", "albedo_known", "material_known",
+                                 "indirect_known", "full"])
 def test_every_fit_row_runs_and_scores(row, tiny_scene, tmp_path):
     from benchmarks.error_budget import fit_row
 
@@ -34,3 +35,29 @@ def test_every_fit_row_runs_and_scores(row, tiny_scene, tmp_path):
     assert math.isfinite(scores["albedo_psnr"]) and math.isfinite(scores["roughness_mse"])
     if row in ("drift", "roughness_alone"):
         assert math.isfinite(scores["drift_glossy"]) or math.isfinite(scores["drift_rough"])
+
+
+def test_albedo_known_reads_the_true_albedo_and_learns_the_roughness(tiny_scene):
+    """The albedo_known row's material: albedo is the scene's at every point, roughness the field's (with
+    its gradient), the warm-up's override still applied."""
+    from benchmarks.error_budget import TrueAlbedo
+    from nefii.data.material import MaterialOnMesh, load_material
+    from nefii.fields.encodings import HashGrid
+    from nefii.fields.material import MaterialField
+    from nefii.raycast import MeshGeometry, Rays
+
+    mesh = MeshGeometry.from_file(tiny_scene / "mesh.ply")
+    v = torch.from_numpy(mesh.vertices).float()
+    lo, hi = v.min(0).values, v.max(0).values
+    centre = (lo + hi) / 2
+    dirs = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    hit = mesh.intersect(Rays(centre + 3 * (hi - lo).norm() * dirs, -dirs))
+    x, n = hit.position[hit.valid], hit.normal[hit.valid]
+    assert len(x) > 10
+    lookup = MaterialOnMesh(load_material(tiny_scene), mesh)
+    field = MaterialField(HashGrid(4, 2, 12, 4, 32), 16, 2, (lo, hi))
+    m = TrueAlbedo(field, lookup)(x, n)
+    assert torch.allclose(m.albedo, lookup(x, n).albedo.to(m.albedo))
+    m.roughness.sum().backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in field.parameters())
+    assert torch.all(TrueAlbedo(field, lookup)(x, n, roughness_override=0.5).roughness == 0.5)
