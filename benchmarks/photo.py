@@ -107,9 +107,10 @@ def main() -> None:
     ap.add_argument("--configs", nargs="+", default=["mesh", "mesh_shared"], choices=list(CONFIGS))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=2, help="fits at once, one thread each (default 2)")
+    ap.add_argument("--threads", type=int, default=None, help="threads per fit (default: 1 with --jobs > 1, else all)")
     args = ap.parse_args()
     jobs = [(s, c) for s in args.scenes for c in args.configs]
-    threads = 1 if args.jobs > 1 else 0
+    threads = args.threads if args.threads is not None else (1 if args.jobs > 1 else 0)
     with ThreadPoolExecutor(args.jobs) as pool:
         for f in [pool.submit(run_one, s, c, args.seed, threads) for s, c in jobs]:
             f.result()
