@@ -1,6 +1,7 @@
 """Where the material error comes from: the ``cpu`` fit with one unknown at a time replaced by the truth.
 
     python -m benchmarks.error_budget run SCENE_DIR ROW --seed S --out DIR [--steps N] [--eval-spp 32] [--set k=v]
+    python -m benchmarks.error_budget adopt RUN SCENE_DIR ROW --seed S --out DIR   # a run made elsewhere as a row
     python -m benchmarks.error_budget table RUNS_DIR       # -> benchmarks/results/error_budget.md
 
 Rows (each a fit of the ``cpu`` preset, scored by ``nefii.evaluate.run.evaluate_run`` on the test views):
@@ -375,6 +376,13 @@ def main() -> None:
     r.add_argument("--device", default="cpu")
     r.add_argument("--set", dest="overrides", action="append", default=[],
                    help="config override for the fit rows, e.g. brdf.shadowing=schlick (the true material reads it too)")
+    a = sub.add_parser("adopt", help="record a finished `nefii fit` + `nefii eval` run (benchmarks.quality's `full`, "
+                                     "say) as a row, its masked figures read from RUN/eval/metrics.json")
+    a.add_argument("run", type=Path)
+    a.add_argument("data", type=Path)
+    a.add_argument("row", choices=ROWS)
+    a.add_argument("--seed", type=int, required=True)
+    a.add_argument("--out", type=Path, required=True)
     t = sub.add_parser("table")
     t.add_argument("runs", type=Path)
     t.add_argument("--where", default="", help="where and how the runs ran, for the record")
@@ -382,6 +390,15 @@ def main() -> None:
     args = ap.parse_args()
     if args.cmd == "table":
         table(args.runs, args.where, args.code)
+        return
+    if args.cmd == "adopt":
+        metrics = json.loads((args.run / "eval" / "metrics.json").read_text())["masked"]
+        out = args.out / args.data.name / f"{args.row}_s{args.seed}"
+        out.mkdir(parents=True, exist_ok=True)
+        blob = {"scene": args.data.name, "row": args.row, "seed": args.seed, "scores": metrics,
+                "source": str(args.run)}
+        (out / "scores.json").write_text(json.dumps(blob, indent=2) + "\n")
+        print(json.dumps(blob))
         return
     torch.set_num_threads(args.threads)
     out = args.out / args.data.name / f"{args.row}_s{args.seed}"

@@ -61,3 +61,21 @@ def test_albedo_known_reads_the_true_albedo_and_learns_the_roughness(tiny_scene)
     m.roughness.sum().backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in field.parameters())
     assert torch.all(TrueAlbedo(field, lookup)(x, n, roughness_override=0.5).roughness == 0.5)
+
+
+def test_adopt_records_a_finished_run_as_a_row(tmp_path, monkeypatch):
+    """``adopt`` copies a run's masked eval figures into the row's scores.json, naming the run it came from."""
+    import json
+    import sys
+
+    from benchmarks import error_budget
+
+    run = tmp_path / "run"
+    (run / "eval").mkdir(parents=True)
+    masked = {"albedo_psnr": 27.5, "roughness_mse": 0.031}
+    (run / "eval" / "metrics.json").write_text(json.dumps({"masked": masked, "whole_image": {"albedo_psnr": 1.0}}))
+    monkeypatch.setattr(sys, "argv", ["error_budget", "adopt", str(run), str(tmp_path / "scene_x"), "full",
+                                      "--seed", "1", "--out", str(tmp_path / "rows")])
+    error_budget.main()
+    blob = json.loads((tmp_path / "rows" / "scene_x" / "full_s1" / "scores.json").read_text())
+    assert blob["scores"] == masked and blob["seed"] == 1 and blob["row"] == "full" and blob["source"] == str(run)
