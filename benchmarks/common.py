@@ -41,6 +41,11 @@ def scene(name: str, res: int = 128, views: int = 64, test_views: int = 8, spp: 
     return out
 
 
+def fit_threads(threads: int | None, jobs: int) -> int:
+    """Threads per fit: ``threads`` if given, else 1 when ``jobs`` fits share the machine, else 0 (all cores)."""
+    return threads if threads is not None else (1 if jobs > 1 else 0)
+
+
 def set_flags(overrides: list[str], threads: int) -> list[str]:
     """``--set KEY=VALUE`` arguments of a nefii command for ``overrides`` and the thread count."""
     return [x for kv in [*overrides, f"threads={threads}"] for x in ("--set", kv)]

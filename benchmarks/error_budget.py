@@ -55,6 +55,7 @@ from nefii.fit.outputs import FittedRun
 from nefii.fit.policies import RoughnessWarmup
 from nefii.fit.session import prepare_fit
 from nefii.fit.trainer import Trainer
+from nefii.io.atomic import write_text_atomic
 from nefii.raycast import MeshGeometry, Rays
 from nefii.relight.environment import load_environment
 from nefii.render.envmap import Environment
@@ -361,6 +362,20 @@ def table(runs: Path, where: str, code: str | None = None) -> None:
     write_results("error_budget.md", lines)
 
 
+def row_folder(root: Path, data: Path, row: str, seed: int) -> Path:
+    """``root/<scene>/<row>_s<seed>``, made if missing: where a row's run and its ``scores.json`` live."""
+    out = root / data.name / f"{row}_s{seed}"
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def save_row(out: Path, data: Path, row: str, seed: int, scores: dict, **extra) -> None:
+    """A row's ``scores.json`` (what :func:`table` reads), written atomically, and printed."""
+    blob = {"scene": data.name, "row": row, "seed": seed, "scores": scores, **extra}
+    write_text_atomic(out / "scores.json", json.dumps(blob, indent=2) + "\n")
+    print(json.dumps(blob))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -393,16 +408,11 @@ def main() -> None:
         return
     if args.cmd == "adopt":
         metrics = json.loads((args.run / "eval" / "metrics.json").read_text())["masked"]
-        out = args.out / args.data.name / f"{args.row}_s{args.seed}"
-        out.mkdir(parents=True, exist_ok=True)
-        blob = {"scene": args.data.name, "row": args.row, "seed": args.seed, "scores": metrics,
-                "source": str(args.run)}
-        (out / "scores.json").write_text(json.dumps(blob, indent=2) + "\n")
-        print(json.dumps(blob))
+        save_row(row_folder(args.out, args.data, args.row, args.seed), args.data, args.row, args.seed, metrics,
+                 source=str(args.run))
         return
     torch.set_num_threads(args.threads)
-    out = args.out / args.data.name / f"{args.row}_s{args.seed}"
-    out.mkdir(parents=True, exist_ok=True)
+    out = row_folder(args.out, args.data, args.row, args.seed)
     t0 = time.time()
     if args.row == "constant":
         scores = constant_scores(load_scene(args.data, "test"))
@@ -413,9 +423,7 @@ def main() -> None:
     else:
         scores = fit_row(args.data, args.row, args.seed, out, args.steps, args.drift_steps, args.eval_spp,
                          torch.device(args.device), args.overrides)
-    blob = {"scene": args.data.name, "row": args.row, "seed": args.seed, "scores": scores, "wall_s": time.time() - t0}
-    (out / "scores.json").write_text(json.dumps(blob, indent=2) + "\n")
-    print(json.dumps(blob))
+    save_row(out, args.data, args.row, args.seed, scores, wall_s=time.time() - t0)
 
 
 if __name__ == "__main__":

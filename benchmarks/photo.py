@@ -30,7 +30,7 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import CACHE, code_version, machine, scene, set_flags, stamp, write_results
+from .common import CACHE, code_version, fit_threads, machine, scene, set_flags, stamp, write_results
 from .quality import SCENES, run_dir
 
 CONFIGS = {
@@ -110,7 +110,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None, help="threads per fit (default: 1 with --jobs > 1, else all)")
     args = ap.parse_args()
     jobs = [(s, c) for s in args.scenes for c in args.configs]
-    threads = args.threads if args.threads is not None else (1 if args.jobs > 1 else 0)
+    threads = fit_threads(args.threads, args.jobs)
     with ThreadPoolExecutor(args.jobs) as pool:
         for f in [pool.submit(run_one, s, c, args.seed, threads) for s, c in jobs]:
             f.result()

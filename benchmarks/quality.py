@@ -20,7 +20,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import CACHE, code_version, machine, scene, set_flags, stamp, write_results
+from .common import CACHE, code_version, fit_threads, machine, scene, set_flags, stamp, write_results
 
 CONFIGS = {
     "full": [],
@@ -131,7 +131,7 @@ def main() -> None:
                     help="paths per pixel of the relighting, default `nefii relight`'s own (0: skip it)")
     args = ap.parse_args()
     datas = {s: scene(s, args.res, args.views, args.test_views) for s in args.scenes}
-    threads = args.threads if args.threads is not None else (1 if args.jobs > 1 else 0)
+    threads = fit_threads(args.threads, args.jobs)
     jobs = [(datas[s], s, c) for s in args.scenes for c in args.configs]
     t0 = time.time()
     with ThreadPoolExecutor(args.jobs) as pool:
