@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 import torch
@@ -36,10 +38,11 @@ from nefii.data.downscale import training_images
 from nefii.data.load import load_scene
 from nefii.fit.geometry_source import resolve_source
 from nefii.fit.pixels import first_hits, view_rays
-from nefii.raycast.base import Geometry, Rays, spawn_rays
-from nefii.relight.environment import load_environment
+from nefii.raycast.base import Geometry, Rays, visible_cosines
 from nefii.render.equirect import uv_to_direction
 from nefii.render.sg import SGMixture, fibonacci_sphere, sg_eval
+
+from .error_budget import true_environment
 
 BANDS = ((-90, -30), (-30, -10), (-10, 0), (0, 10), (10, 20), (20, 30), (30, 45), (45, 60), (60, 75), (75, 90))
 """elevation bands, degrees (world +Z up)"""
@@ -66,9 +69,11 @@ class Lattice:
         return energy.index_add_(0, self.owner, radiance * self.solid[:, None]) / self.cell
 
 
-def lattice(num_directions: int = 4096, grid_height: int = 256) -> Lattice:
+def lattice(num_directions: int = 4096, grid_height: int = 256, grid_width: int | None = None) -> Lattice:
+    """The lattice over an equirectangular grid of ``grid_height`` rows (``grid_width`` columns, default twice
+    as many): pass an environment image's own shape to bin it without resampling."""
     dirs = fibonacci_sphere(num_directions)
-    H, W = grid_height, 2 * grid_height
+    H, W = grid_height, grid_width or 2 * grid_height
     v = ((torch.arange(H) + 0.5) / H).unsqueeze(-1).expand(H, W)
     u = ((torch.arange(W) + 0.5) / W).expand(H, W)
     grid = uv_to_direction(u, v).reshape(-1, 3).float()
@@ -77,28 +82,11 @@ def lattice(num_directions: int = 4096, grid_height: int = 256) -> Lattice:
     return Lattice(dirs, grid, solid, owner)
 
 
-def envmap_on_grid(image: Float[Tensor, "He We 3"], height: int) -> Float[Tensor, "G 3"]:
-    """An equirectangular image box-filtered to ``height`` rows (power kept), flattened like the grid."""
-    f = max(1, image.shape[0] // height)
-    H, W = image.shape[0] // f, image.shape[1] // f
-    small = image[:H * f, :W * f].reshape(H, f, W, f, 3).mean((1, 3))
-    if small.shape[:2] != (height, 2 * height):
-        small = torch.nn.functional.interpolate(small.permute(2, 0, 1)[None], size=(height, 2 * height),
-                                                mode="nearest")[0].permute(1, 2, 0)
-    return small.reshape(-1, 3).float()
-
-
 def irradiance_design(position: Float[Tensor, "P 3"], normal: Float[Tensor, "P 3"],
                       geometric_normal: Float[Tensor, "P 3"], geometry: Geometry, dirs: Float[Tensor, "D 3"],
-                      cell: float, ray_offset: float, chunk: int = 1 << 20) -> Float[Tensor, "P D"]:
+                      cell: float, ray_offset: float) -> Float[Tensor, "P D"]:
     """``V(x_p, d) max(n_p . d, 0) dOmega``: a light's irradiance at the points is this times its radiance."""
-    cos = (normal @ dirs.T).clamp_min(0.0)
-    p_idx, d_idx = (cos > 0).nonzero(as_tuple=True)
-    visible = torch.zeros_like(cos)
-    for a in range(0, len(p_idx), chunk):
-        p, d = p_idx[a:a + chunk], d_idx[a:a + chunk]
-        visible[p, d] = (~geometry.occluded(spawn_rays(position[p], geometric_normal[p], dirs[d], ray_offset))).float()
-    return visible * cos * cell
+    return visible_cosines(position, normal, geometric_normal, geometry, dirs, ray_offset) * cell
 
 
 @dataclass(frozen=True)
@@ -132,10 +120,16 @@ def light_error(design: Float[Tensor, "P D"], dirs: Float[Tensor, "D 3"], fitted
     return LightError(scale, float(r.std()), float(r.quantile(0.05)), float(r.quantile(0.95)), tuple(bands), sun)
 
 
+def refuse(message: str) -> NoReturn:
+    """One line on stderr naming the file, exit status 2 (bad input)."""
+    print(f"light_error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
 def fitted_light(run: Path) -> SGMixture:
     path = run / "sg.npy"
     if not path.is_file():
-        raise SystemExit(f"{path}: no such file (is {run} a finished SG fit?)")
+        refuse(f"{path}: no such file (is {run} a finished SG fit?)")
     arr = torch.from_numpy(np.load(path)).float()
     return SGMixture(torch.nn.functional.normalize(arr[:, :3], dim=-1), arr[:, 3], arr[:, 4:7])
 
@@ -163,16 +157,17 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     for f in (args.scene / "envmap.exr", args.scene / "mesh.ply"):
         if not f.is_file():
-            raise SystemExit(f"{f}: no such file (light_error needs the scene's true environment and mesh)")
+            refuse(f"{f}: no such file (light_error needs the scene's true environment and mesh)")
     scene = load_scene(args.scene, "train")
     geometry, _ = resolve_source(args.scene / "mesh.ply", None, None, "mesh", args.scene).open()
     pts = first_hits(scene, geometry).points
     pick = torch.randint(len(pts.position), (args.points,), generator=torch.Generator().manual_seed(args.seed))
     pts = pts[pick]
-    lat = lattice()
+    image = true_environment(args.scene, torch.device("cpu"), height=256).image        # box-filtered, power kept
+    lat = lattice(grid_height=image.shape[0], grid_width=image.shape[1])
     design = irradiance_design(pts.position, pts.normal, pts.geometric_normal, geometry, lat.dirs, lat.cell,
                                1e-4 * geometry.scale)
-    true = lat.binned(envmap_on_grid(load_environment(args.scene / "envmap.exr").image, 256))
+    true = lat.binned(image.reshape(-1, 3).float())
     head = " | ".join(f"{lo}..{hi}" for lo, hi in BANDS)
     print(f"light error against {args.scene / 'envmap.exr'} at {args.points} training points\n")
     print(f"| run | scale | log E std | 5% | 95% | {head} | sun cone |")

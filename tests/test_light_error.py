@@ -9,12 +9,9 @@ import torch
 
 from benchmarks import light_error as le
 from fit_fixtures import scene_env, scene_mesh, write_rendered_scene
+from nefii.fit.outputs import sg_array
 from nefii.raycast import MeshGeometry
 from nefii.render.sg import SGMixture, sg_eval, sg_integral
-
-
-def _sg_rows(sg: SGMixture) -> np.ndarray:
-    return torch.cat([sg.axis, sg.sharpness[:, None], sg.amplitude], -1).numpy()
 
 
 def test_binning_keeps_energy():
@@ -55,15 +52,17 @@ def test_the_true_light_scores_no_error_and_a_moved_sun_does():
     assert err.sun < 0.5                       # and the sun's cone lost it
 
 
-def test_cli_prints_a_row_per_run_and_refuses_a_folder_without_sg(tmp_path, capsys):
+def test_cli_prints_a_row_per_run_and_refuses_a_folder_without_sg_in_one_line(tmp_path, capsys):
     data = write_rendered_scene(tmp_path / "s", res=16, n_train=2, n_test=1)
     run = tmp_path / "run"
     run.mkdir()
-    np.save(run / "sg.npy", _sg_rows(scene_env()))
+    np.save(run / "sg.npy", sg_array(scene_env()))
     le.main([str(data), str(run), "--points", "64"])
     out = capsys.readouterr().out
     row = next(line for line in out.splitlines() if line.startswith(f"| {run} |"))
     scale, std = (float(x) for x in row.split("|")[2:4])
     assert scale == pytest.approx(1.0, abs=0.05) and std < 0.05      # the truth's own lobes, binned two ways
-    with pytest.raises(SystemExit, match="sg.npy"):
+    with pytest.raises(SystemExit) as exit_:
         le.main([str(data), str(tmp_path)])
+    err = capsys.readouterr().err.strip()
+    assert exit_.value.code == 2 and len(err.splitlines()) == 1 and str(tmp_path / "sg.npy") in err

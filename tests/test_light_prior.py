@@ -4,11 +4,13 @@ import math
 
 import numpy as np
 import torch
+import trimesh
 
 from nefii.fields.environment import EnvmapEnvironment, SGEnvironment
 from nefii.fit.light_prior import LightCoverage, direction_coverage, light_coverage, unseen_light_prior
 from nefii.fit.path_trace import SurfacePoints
 from nefii.raycast import MeshGeometry
+from nefii.raycast.base import visible_cosines
 from nefii.render.sg import fibonacci_sphere
 
 
@@ -78,3 +80,19 @@ def test_both_environments_report_their_energy_over_the_sphere():
     assert axis.shape == (128, 3) and math.isclose(e.sum().item(), 4 * math.pi * 0.7, rel_tol=1e-4)
     e.sum().backward()                                                    # differentiable in the amplitudes
     assert sg.log_amplitude.grad is not None and (sg.log_amplitude.grad > 0).all()
+
+
+def test_visible_cosines_are_cosines_where_the_sky_is_open_and_zero_under_a_roof():
+    """A point on the floor sees the upper hemisphere with its cosine; a roof above a second point hides
+    what it covers; below the horizon everything is 0; the ray budget per call does not change the answer."""
+    roof = trimesh.creation.box((0.4, 0.4, 0.02)).apply_translation((2.0, 0.0, 0.5))
+    floor = trimesh.creation.box((6.0, 6.0, 0.02)).apply_translation((0.0, 0.0, -0.01))
+    mesh = trimesh.util.concatenate([roof, floor])
+    geometry = MeshGeometry(mesh.vertices, mesh.faces)
+    x = torch.tensor([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    up = torch.tensor([[0.0, 0.0, 1.0]]).expand(2, 3)
+    dirs = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, -0.5]]), dim=-1)
+    v = visible_cosines(x, up, up, geometry, dirs, 1e-4)
+    want = torch.tensor([[1.0, 2 ** -0.5, 0.0], [0.0, 2 ** -0.5, 0.0]])   # the roof covers the second point's zenith
+    assert torch.allclose(v, want, atol=1e-6)
+    assert torch.equal(visible_cosines(x, up, up, geometry, dirs, 1e-4, max_rays=1), v)

@@ -25,7 +25,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from ..raycast.base import Geometry, spawn_rays
+from ..raycast.base import Geometry, visible_cosines
 from ..render.sg import fibonacci_sphere, sg_integral
 
 
@@ -46,12 +46,7 @@ def estimate_light(position: Tensor, normal: Tensor, geometric_normal: Tensor, c
     idx = torch.randperm(P, generator=generator)[:num_points] if P > num_points else torch.arange(P)
     x, n, ng, c = position[idx].cpu(), normal[idx].cpu(), geometric_normal[idx].cpu(), colour[idx].cpu()
     dirs = fibonacci_sphere(num_directions)
-    cos = (n @ dirs.T).clamp_min(0.0)                                         # (P, D)
-    pi, dj = (cos > 0).nonzero(as_tuple=True)
-    rays = spawn_rays(x[pi], ng[pi], dirs[dj], ray_offset * geometry.scale)
-    visible = ~geometry.occluded(rays)
-    T = torch.zeros_like(cos)
-    T[pi[visible], dj[visible]] = cos[pi[visible], dj[visible]]
+    T = visible_cosines(x, n, ng, geometry, dirs, ray_offset * geometry.scale)    # (P, D)
     e = nnls_fista(T, c, iterations)
     return LightEstimate(dirs, e)
 

@@ -22,7 +22,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from ..raycast.base import Geometry, spawn_rays
+from ..raycast.base import Geometry, visible_cosines
 from ..render.sg import fibonacci_sphere
 from .path_trace import SurfacePoints
 
@@ -50,14 +50,8 @@ def direction_coverage(points: SurfacePoints, geometry: Geometry, directions: Fl
                        ray_offset: float, chunk: int = 64) -> Float[Tensor, " M"]:
     """``c(d)``: mean over ``points`` of ``V(x, d) max(n . d, 0)``, visibility traced against ``geometry``
     (``ray_offset`` in world units) for the pairs above the surface only: the others add 0 either way."""
-    cov = []
-    for d in directions.split(chunk):
-        cos = (points.normal @ d.T).clamp_min(0.0)                                 # (P, D)
-        p_idx, d_idx = (cos > 0).nonzero(as_tuple=True)
-        rays = spawn_rays(points.position[p_idx], points.geometric_normal[p_idx], d[d_idx], ray_offset)
-        visible = torch.zeros_like(cos)
-        visible[p_idx, d_idx] = (~geometry.occluded(rays)).to(cos.dtype)
-        cov.append((visible * cos).mean(0))
+    cov = [visible_cosines(points.position, points.normal, points.geometric_normal, geometry, d, ray_offset).mean(0)
+           for d in directions.split(chunk)]
     return torch.cat(cov)
 
 

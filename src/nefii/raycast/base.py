@@ -66,3 +66,20 @@ def spawn_rays(position: Float[Tensor, "*bs 3"], geometric_normal: Float[Tensor,
     still start on the correct side), which keeps rays from hitting their own triangle."""
     side = torch.where(dot(geometric_normal, directions) >= 0, 1.0, -1.0).unsqueeze(-1)
     return Rays(origins=position + side * offset * geometric_normal, directions=directions)
+
+
+def visible_cosines(position: Float[Tensor, "P 3"], normal: Float[Tensor, "P 3"],
+                    geometric_normal: Float[Tensor, "P 3"], geometry: Geometry, directions: Float[Tensor, "D 3"],
+                    offset: float, max_rays: int = 1 << 20) -> Float[Tensor, "P D"]:
+    """``V(x_p, d) max(n_p . d, 0)`` for every point and direction: visibility traced against ``geometry``
+    (rays spawned ``offset`` world units off the surface, at most ``max_rays`` a call) for the pairs above the
+    shading normal's horizon only, the others being 0 either way. A diffuse point's irradiance from a light of
+    radiance ``L(d)`` on a lattice of cells ``dOmega`` is this matrix times ``L dOmega``."""
+    cos = (normal @ directions.T).clamp_min(0.0)
+    p_idx, d_idx = (cos > 0).nonzero(as_tuple=True)
+    visible = torch.zeros_like(cos)
+    for a in range(0, len(p_idx), max_rays):
+        p, d = p_idx[a:a + max_rays], d_idx[a:a + max_rays]
+        rays = spawn_rays(position[p], geometric_normal[p], directions[d], offset)
+        visible[p, d] = (~geometry.occluded(rays)).to(cos.dtype)
+    return visible * cos
