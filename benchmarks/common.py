@@ -1,6 +1,7 @@
 """Shared by the benchmark scripts: machine facts, scene caching, results tables."""
 from __future__ import annotations
 
+import json
 import os
 import platform
 import subprocess
@@ -38,7 +39,25 @@ def scene(name: str, res: int = 128, views: int = 64, test_views: int = 8, spp: 
     if not (out / "transforms_train.json").exists():
         subprocess.run([sys.executable, "-m", "nefii.cli.main", "synth", name, "--out", str(out), "--res", str(res),
                         "--views", str(views), "--test-views", str(test_views), "--spp", str(spp)], check=True)
+    else:
+        from nefii.synth.generate import synth_versions  # noqa: PLC0415
+
+        stale = version_changes(out, synth_versions())
+        if stale:
+            print(f"benchmarks: {out.name} was synthesised with other code or libraries ({stale}); its figures "
+                  f"may differ from a fresh cache's: delete it to make it again", file=sys.stderr)
     return out
+
+
+def version_changes(scene_dir: Path, now: dict[str, str | None]) -> str:
+    """The entries of ``scene_dir/scene.json``'s ``versions`` that differ from ``now``, as ``key old -> new``
+    (comma-separated; a record without ``versions`` counts as every key unknown); '' when none do."""
+    try:
+        then = json.loads((scene_dir / "scene.json").read_text()).get("versions", {})
+    except (OSError, ValueError):
+        then = {}
+    keys = [k for k in now if k != "platform"]
+    return ", ".join(f"{k} {then.get(k)} -> {now[k]}" for k in keys if then.get(k) != now[k])
 
 
 def fit_threads(threads: int | None, jobs: int) -> int:

@@ -18,6 +18,7 @@ from nefii.io.exr import read_exr
 from nefii.synth import scenes
 from nefii.synth.envmaps import bake_equirect, sample_equirect, sun_directions
 from nefii.synth.skies import get_environment
+from nefii.synth.generate import synth_versions
 
 mitsuba = pytest.importorskip("mitsuba")
 
@@ -149,6 +150,7 @@ def test_output_layout(small_run):
     record = json.loads((root / "scene.json").read_text())
     assert record["scene"] == SMALL and record["settings"]["spp"] == 16
     assert record["renderer"]["name"] == "mitsuba" and record["versions"]["mitsuba"]
+    assert record["versions"] == synth_versions()
     assert record["noise"]["clamped"] is False
     assert record["environment"]["name"] == spec.environment
 

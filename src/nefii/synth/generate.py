@@ -6,6 +6,7 @@ temporary folder beside the output and rename it into place at the very end.
 """
 from __future__ import annotations
 
+import hashlib
 import importlib.metadata as md
 import platform
 import sys
@@ -152,6 +153,23 @@ def _version(dist: str) -> str | None:
         return None
 
 
+def _synth_source_hash() -> str:
+    """The first 12 hex digits of the SHA-256 of this package's sources (file names and contents, sorted):
+    a change to the scene code shows in ``scene.json`` even when nefii's version number does not move."""
+    h = hashlib.sha256()
+    for f in sorted(Path(__file__).parent.glob("*.py")):
+        h.update(f.name.encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:12]
+
+
+def synth_versions() -> dict[str, str | None]:
+    """What a synthesised scene depends on beyond its settings: the scene code and the libraries that render
+    it. Recorded in ``scene.json``; two scenes made with the same settings and these values are the same."""
+    return {"nefii": _version("nefii"), "synth_source": _synth_source_hash(), "python": platform.python_version(),
+            "numpy": np.__version__, "torch": _version("torch"), "mitsuba": _version("mitsuba"),
+            "drjit": _version("drjit"), "openexr": _version("OpenEXR"), "platform": sys.platform}
+
+
 def _env_record(name: str, image: np.ndarray, file: str) -> dict:
     env = get_environment(name)
     sun = None if env.sun is None else {
@@ -200,8 +218,6 @@ def scene_record(settings: SynthSettings, scene, rig, renderer: MitsubaRenderer,
             "mean": float(np.mean(gap)) if gap else None, "max": float(np.max(gap)) if gap else None,
             "meaning": "|sum(specular + diffuse) - sum(r_K rgb)| / sum(r_K rgb) per test view; independent "
                        "samples, so it is Monte Carlo noise plus any bias"}},
-        "versions": {"nefii": _version("nefii"), "python": platform.python_version(), "numpy": np.__version__,
-                     "torch": _version("torch"), "mitsuba": _version("mitsuba"), "drjit": _version("drjit"),
-                     "openexr": _version("OpenEXR"), "platform": sys.platform},
+        "versions": synth_versions(),
         "timing_s": stats.seconds,
     }

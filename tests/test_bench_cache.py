@@ -1,0 +1,20 @@
+"""The benchmark cache notices a scene synthesised with other code or libraries."""
+import json
+
+from benchmarks.common import version_changes
+
+
+def test_version_changes_names_what_moved(tmp_path):
+    now = {"nefii": "0.1.0", "synth_source": "abc", "mitsuba": "3.9.1", "platform": "linux"}
+    (tmp_path / "scene.json").write_text(json.dumps({"versions": {**now, "platform": "darwin"}}))
+    assert version_changes(tmp_path, now) == ""                      # the platform alone is not a change
+    (tmp_path / "scene.json").write_text(json.dumps({"versions": {**now, "mitsuba": "3.8.0"}}))
+    assert version_changes(tmp_path, now) == "mitsuba 3.8.0 -> 3.9.1"
+    (tmp_path / "scene.json").write_text(json.dumps({"versions": {"nefii": "0.1.0", "mitsuba": "3.9.1"}}))
+    assert version_changes(tmp_path, now) == "synth_source None -> abc"
+
+
+def test_version_changes_of_an_unreadable_record(tmp_path):
+    (tmp_path / "scene.json").write_text("{not json")
+    assert "mitsuba None -> 3.9.1" in version_changes(tmp_path, {"mitsuba": "3.9.1"})
+    assert version_changes(tmp_path / "missing", {"mitsuba": "3.9.1"}) == "mitsuba None -> 3.9.1"
