@@ -1,6 +1,6 @@
 # The two set-up commands of the README. Both work on a fresh machine:
 # they create .venv, install the CPU torch wheel first (so no CUDA build is
-# ever pulled in), then nefii with its extras.
+# ever pulled in), then nefii with its extras at the versions of constraints.txt.
 VENV ?= .venv
 PY := $(VENV)/bin/python
 TORCH_VERSION ?= 2.13.0
@@ -8,7 +8,7 @@ EXTRAS ?= dev,synth,colmap
 
 .PHONY: demo test install clean mutants
 
-$(VENV)/.installed: pyproject.toml Makefile
+$(VENV)/.installed: pyproject.toml constraints.txt Makefile
 	@# Mitsuba's fast llvm variant (nefii synth) needs libLLVM >= 16; Debian 12's default 15 aborts.
 	@# Best effort: without it nefii synth falls back to the (slower) scalar variant with a warning.
 	@# Chromium runs the test of `nefii view` (the test skips itself without it).
@@ -21,7 +21,7 @@ $(VENV)/.installed: pyproject.toml Makefile
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "torch==$(TORCH_VERSION)"
-	$(PY) -m pip install --quiet -e ".[$(EXTRAS)]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[$(EXTRAS)]"
 	touch $@
 
 install: $(VENV)/.installed

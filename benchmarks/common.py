@@ -70,6 +70,12 @@ def set_flags(overrides: list[str], threads: int) -> list[str]:
     return [x for kv in [*overrides, f"threads={threads}"] for x in ("--set", kv)]
 
 
+def note_lines(note: str) -> list[str]:
+    """A results file's hand-written paragraph: ``note`` (``@FILE``: FILE's text) and a blank line; none if empty."""
+    text = Path(note[1:]).read_text().strip() if note.startswith("@") else note.strip()
+    return [text, ""] if text else []
+
+
 def write_results(name: str, lines: list[str]) -> None:
     """Print a results table and write it to ``results/<name>`` (atomically)."""
     from nefii.io.atomic import write_text_atomic  # noqa: PLC0415

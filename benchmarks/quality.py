@@ -20,7 +20,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import CACHE, code_version, fit_threads, machine, scene, set_flags, stamp, write_results
+from .common import CACHE, code_version, fit_threads, machine, note_lines, scene, set_flags, stamp, write_results
 
 CONFIGS = {
     "full": [],
@@ -129,7 +129,10 @@ def main() -> None:
     ap.add_argument("--set", dest="extra", action="append", default=[])
     ap.add_argument("--relight-spp", type=int, default=256,
                     help="paths per pixel of the relighting, default `nefii relight`'s own (0: skip it)")
+    ap.add_argument("--note", default="", help="a paragraph printed under the machine line of quality.md and "
+                    "relight.md (how the rows were made, when that is not this invocation); @FILE reads it from FILE")
     args = ap.parse_args()
+    note = note_lines(args.note)
     datas = {s: scene(s, args.res, args.views, args.test_views) for s in args.scenes}
     threads = fit_threads(args.threads, args.jobs)
     jobs = [(datas[s], s, c) for s in args.scenes for c in args.configs]
@@ -148,7 +151,7 @@ def main() -> None:
              f"eval at {args.eval_spp} spp. Fit time is each fit's wall time with its own thread count (`thr`); "
              f"fits run two at a time (1 thread each) take ~1.5x as long as a lone fit on both cores. This "
              f"invocation: {len(jobs)} runs in {(time.time() - t0) / 60:.1f} min (cached runs reused); current code "
-             f"{code_version()}.", "",
+             f"{code_version()}.", "", *note,
              "Masked (object pixels) Table 1 columns; LPIPS n/a offline. Albedo aligned per view and channel "
              "by median(gt/pred).", "",
              "| scene | config | " + " | ".join(COLUMNS) + " | rgb PSNR (whole image) | fit min | thr | peak GiB | code |",
@@ -170,7 +173,7 @@ def main() -> None:
             f"# relight ({stamp()})", "", f"Machine: {machine()}. `nefii relight` of each scene's `full` run of "
             f"quality.md (fitted under its training light) under the scene's relighting environments, test views, "
             f"{args.relight_spp} spp, 8 bounces; object pixels, sRGB clipped, albedo scaled by eval's alignment. "
-            f"Target: >= 26 dB masked PSNR.", "", "| scene | environment | PSNR | SSIM | target |", "|---|---|---|---|---|",
+            f"Target: >= 26 dB masked PSNR.", "", *note, "| scene | environment | PSNR | SSIM | target |", "|---|---|---|---|---|",
             *relit])
 
 

@@ -18,3 +18,12 @@ def test_version_changes_of_an_unreadable_record(tmp_path):
     (tmp_path / "scene.json").write_text("{not json")
     assert "mitsuba None -> 3.9.1" in version_changes(tmp_path, {"mitsuba": "3.9.1"})
     assert version_changes(tmp_path / "missing", {"mitsuba": "3.9.1"}) == "mitsuba None -> 3.9.1"
+
+
+def test_a_results_note_is_a_paragraph_from_text_or_a_file(tmp_path):
+    from benchmarks.common import note_lines
+
+    assert note_lines("") == [] and note_lines("  \n") == []
+    assert note_lines(" rows refitted at abc. ") == ["rows refitted at abc.", ""]
+    (tmp_path / "note.md").write_text("How the rows were made:\ntwo at a time.\n")
+    assert note_lines(f"@{tmp_path / 'note.md'}") == ["How the rows were made:\ntwo at a time.", ""]
