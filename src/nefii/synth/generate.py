@@ -25,7 +25,7 @@ from . import cameras, layout
 from .envmaps import bake_equirect
 from .meshes import write_ply
 from .textures import write_material
-from .mitsuba_backend import MitsubaRenderer, bake_for_mitsuba, import_mitsuba
+from .mitsuba_backend import MitsubaRenderer, bake_for_mitsuba, import_mitsuba, select_variant
 from .scenes import SCENES, build_scene
 from .skies import get_environment
 from .textures import ALBEDO_RANGE, ROUGHNESS_RANGE
@@ -163,11 +163,13 @@ def _synth_source_hash() -> str:
 
 
 def synth_versions() -> dict[str, str | None]:
-    """What a synthesised scene depends on beyond its settings: the scene code and the libraries that render
-    it. Recorded in ``scene.json``; two scenes made with the same settings and these values are the same."""
+    """What a synthesised scene depends on beyond its settings: the scene code, the libraries that render it
+    and Mitsuba's variant (llvm and scalar draw other samples). Recorded in ``scene.json``; two scenes made with
+    the same settings and these values are the same."""
     return {"nefii": _version("nefii"), "synth_source": _synth_source_hash(), "python": platform.python_version(),
             "numpy": np.__version__, "torch": _version("torch"), "mitsuba": _version("mitsuba"),
-            "drjit": _version("drjit"), "openexr": _version("OpenEXR"), "platform": sys.platform}
+            "mitsuba_variant": select_variant(), "drjit": _version("drjit"), "openexr": _version("OpenEXR"),
+            "opencv": _version("opencv-python-headless"), "platform": sys.platform}
 
 
 def _env_record(name: str, image: np.ndarray, file: str) -> dict:
