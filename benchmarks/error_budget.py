@@ -289,7 +289,7 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
     if row in ("drift", "roughness_alone", "indirect_known"):
         model.cache = TracedIndirect(geometry, seed=seed)
         model.cache.bind(model)
-    trainer = Trainer(cfg, model, geometry, session.pixels, device)
+    trainer = Trainer(cfg, model, geometry, session.pixels, device, sun_lobe=session.trainer.sun_lobe)
     t0 = time.time()
     while trainer.step < cfg.steps:
         trainer.train_step()

@@ -19,6 +19,7 @@ from nefii.evaluate.table1 import METRIC_KEYS
 from nefii.errors import InputError
 from nefii.fit.config import FitConfig, config_from_dict, config_to_dict, resolve_config, saved_config_from_dict
 from nefii.fit.distributed import DistContext, local_device
+from nefii.fit.light_init import SUN_START_SHARPNESS, sharpen_lobe
 from nefii.fit.losses import SecondaryHitBuffer, SmoothnessPrior, smoothness
 from nefii.fit.path_trace import SurfacePoints
 from nefii.fit.policies import Alternation, PriorFade, RoughnessWarmup
@@ -180,6 +181,28 @@ def test_eq8_trains_only_the_light_lobes_the_cache_can_hold(tiny_scene):
         grad = env.log_amplitude.grad.abs().sum(-1)
         assert bool(grad[1::2].sum() > 0), learn
         assert bool(grad[::2].sum() > 0) == (learn == "all"), learn
+
+
+def test_the_searched_sun_is_sharpened_when_the_warm_up_ends_and_survives_a_checkpoint(tiny_scene):
+    cfg = resolve_config("tiny", [])
+    trainer = prepare_fit(cfg, tiny_scene).trainer
+    env, k = trainer.model.env, 5
+    sharpen_lobe(env, k, SUN_START_SHARPNESS)
+    trainer.sun_lobe = k
+    while trainer.step < trainer.warmup.steps:
+        trainer.train_step()
+    assert float(env().sharpness[k].detach()) < 2 * SUN_START_SHARPNESS     # Adam alone moves it little
+    trainer.train_step()
+    assert float(env().sharpness[k].detach()) == pytest.approx(cfg.light.sharpness_init_peak, rel=0.01)
+    state = trainer.state_dict()
+    assert state["sun_lobe"] == k
+    fresh = prepare_fit(cfg, tiny_scene).trainer
+    fresh.sun_lobe = None
+    fresh.load_state_dict(state)
+    assert fresh.sun_lobe == k
+    del state["sun_lobe"]                                          # a checkpoint from before the search
+    fresh.load_state_dict(state)
+    assert fresh.sun_lobe is None
 
 
 def test_policies():

@@ -15,6 +15,18 @@ radiance 2500 after 10 minutes; the strongest lobes stayed at sharpness ~9 near 
 the sun's shading and shadows went into the albedo). The solution initialises the SG
 lobes: the brightest, well-separated directions become sharp lobes, the rest a smooth sky of
 wide lobes on a Fibonacci lattice.
+
+A low sun can escape that rule: a vertical face sees a direction 8 degrees above the horizon and
+its mirror below at the same cosine, and the least-squares energies spread the sun over both and
+their neighbours, no direction carrying a peak's share (leaning: 3.4% at most). So the shading is
+also fitted by one direction plus a uniform sky (:func:`search_sun`, 4096 directions), and where
+the energies hold no peak at all that direction gets a lobe of its own. The search finds a sun to
+~8 degrees only (the shading of a constant albedo says no more; where the energies do show a
+peak, theirs is closer: the bowl's sun 1.8 degrees, the search's 8.7), so the lobe starts wide
+(:data:`SUN_START_SHARPNESS`, ~6 degrees), which Adam moves onto the sun while the roughness warms
+up (a sharp lobe that far off stays where it is), and is sharpened to a peak's sharpness when the
+warm-up ends (:func:`sharpen_lobe`; a wide lobe is not sharpened by Adam). Leaning's sun left as
+wide lobes cost it 1.5 dB of albedo (docs/experiments.md, 2026-11-29).
 """
 from __future__ import annotations
 
@@ -35,20 +47,56 @@ class LightEstimate:
     """unit directions on a Fibonacci lattice"""
     energy: Float[Tensor, "D 3"]
     """``albedo / pi * L_j dOmega_j`` of each direction (non-negative, RGB)"""
+    sun: Float[Tensor, "3"] | None = None
+    """the direction :func:`search_sun` found (None: no search, or no direction fits)"""
+
+
+SUN_START_SHARPNESS = 100.0
+"""the searched sun's lobe's sharpness until the warm-up ends (~6 degrees wide: it overlaps a sun 8 degrees
+off, so the image loss moves it there)"""
+
+
+def search_sun(T: Float[Tensor, "P D"], colour: Float[Tensor, "P C"]) -> tuple[int, float]:
+    """The direction ``d`` (a column of ``T``, visible cosines) whose fit ``lum ~ a T_d + b s`` (``a, b >= 0``,
+    ``s`` the uniform sky's shading, the mean column) leaves the least residual, and the share of the uniform
+    sky's own residual it removes (0 when no direction fits with both terms non-negative)."""
+    lum = colour.double().mean(-1)
+    T = T.double()
+    sky = T.mean(1)
+    ss, sl = float(sky @ sky), float(sky @ lum)
+    base = float((lum - (max(sl, 0.0) / max(ss, 1e-30)) * sky).square().sum())
+    tt, ts, tl = T.square().sum(0), sky @ T, lum @ T                       # (D,) each
+    det = (tt * ss - ts * ts).clamp_min(1e-30)
+    a, b = (tl * ss - ts * sl) / det, (tt * sl - ts * tl) / det
+    # the residual of the least-squares fit: |lum|^2 - (a tl + b sl)
+    resid = float(lum @ lum) - (a * tl + b * sl)
+    resid = torch.where((a >= 0) & (b >= 0) & (tt > 0), resid, torch.full_like(resid, float("inf")))
+    j = int(resid.argmin())
+    if not math.isfinite(float(resid[j])) or base <= 0:
+        return j, 0.0
+    return j, max(0.0, 1.0 - float(resid[j]) / base)
 
 
 @torch.no_grad()
 def estimate_light(position: Tensor, normal: Tensor, geometric_normal: Tensor, colour: Tensor, geometry: Geometry,
                    num_directions: int = 1024, num_points: int = 4096, iterations: int = 200,
-                   generator: torch.Generator | None = None, ray_offset: float = 1e-4) -> LightEstimate:
-    """Non-negative per-direction energies that best explain ``colour`` as diffuse shading with shadows."""
+                   generator: torch.Generator | None = None, ray_offset: float = 1e-4,
+                   sun_directions: int = 4096) -> LightEstimate:
+    """Non-negative per-direction energies that best explain ``colour`` as diffuse shading with shadows, and
+    the sun :func:`search_sun` finds on ``sun_directions`` directions (0: no search)."""
     P = position.shape[0]
     idx = torch.randperm(P, generator=generator)[:num_points] if P > num_points else torch.arange(P)
     x, n, ng, c = position[idx].cpu(), normal[idx].cpu(), geometric_normal[idx].cpu(), colour[idx].cpu()
+    offset = ray_offset * geometry.scale
     dirs = fibonacci_sphere(num_directions)
-    T = visible_cosines(x, n, ng, geometry, dirs, ray_offset * geometry.scale)    # (P, D)
+    T = visible_cosines(x, n, ng, geometry, dirs, offset)    # (P, D)
     e = nnls_fista(T, c, iterations)
-    return LightEstimate(dirs, e)
+    sun = None
+    if sun_directions > 0:
+        fine = fibonacci_sphere(sun_directions)
+        j, explained = search_sun(visible_cosines(x, n, ng, geometry, fine, offset), c)
+        sun = fine[j] if explained > 0 else None
+    return LightEstimate(dirs, e, sun)
 
 
 def nnls_fista(A: Float[Tensor, "P D"], b: Float[Tensor, "P C"], iterations: int) -> Float[Tensor, "D C"]:
@@ -76,13 +124,17 @@ class SGInit:
     axis: Float[Tensor, "K 3"]
     sharpness: Float[Tensor, " K"]
     amplitude: Float[Tensor, "K 3"]
+    sun_lobe: int | None = None
+    """the lobe on the searched sun, started wide, to be sharpened when the warm-up ends (:func:`sharpen_lobe`)"""
 
 
 def sg_from_light(est: LightEstimate, num_lobes: int, albedo: float = 0.5, num_sharp: int = 8,
                   sharp: float = 800.0, separation_deg: float = 15.0, peak_fraction: float = 0.05) -> SGInit:
     """Lobes for an :class:`LightEstimate`: up to ``num_sharp`` (and at most K/8) sharp lobes on directions
-    that each carry at least ``peak_fraction`` of the total energy (at least ``separation_deg`` apart), and
-    wide lobes on a Fibonacci lattice carrying the rest; amplitudes conserve each direction's energy.
+    that each carry at least ``peak_fraction`` of the total energy (at least ``separation_deg`` apart), or, when
+    no direction does, one on the estimate's ``sun`` if it has one (with the energy around it), and wide lobes on a
+    Fibonacci lattice carrying the rest; amplitudes conserve each direction's energy. The sun's lobe starts at
+    :data:`SUN_START_SHARPNESS` (``SGInit.sun_lobe`` says which it is).
     (The NNLS solution is sparse, so a threshold relative to the mean would call most of a sky "peaks".)"""
     dirs, e = est.directions, est.energy.clamp_min(0.0)
     # radiant energy per direction: L_j dOmega_j = pi / albedo * e_j
@@ -96,6 +148,10 @@ def sg_from_light(est: LightEstimate, num_lobes: int, albedo: float = 0.5, num_s
             break
         if all(float(dirs[j] @ dirs[k]) < cos_sep for k in peaks):
             peaks.append(j)
+    sun_axis = None                     # no peak at all: the searched sun, if any, becomes one
+    if est.sun is not None and not peaks and min(num_sharp, num_lobes // 8) > 0:
+        sun_axis = est.sun / est.sun.norm()
+        peaks.append(int((dirs @ sun_axis).argmax()))
     K_wide = num_lobes - len(peaks)
     wide_axis = fibonacci_sphere(K_wide)
     spacing = math.sqrt(4 * math.pi / K_wide)
@@ -112,15 +168,26 @@ def sg_from_light(est: LightEstimate, num_lobes: int, albedo: float = 0.5, num_s
     wide_E = torch.zeros(K_wide, 3).index_add_(0, owner, rest)
     wide_mu = wide_E / sg_integral(wide_sharp).unsqueeze(-1)
     if peaks:
-        p_axis = dirs[peaks]
-        p_sharp = torch.full((len(peaks),), sharp)
+        p_axis, p_sharp = dirs[peaks].clone(), torch.full((len(peaks),), sharp)
+        if sun_axis is not None:
+            p_axis[-1], p_sharp[-1] = sun_axis, SUN_START_SHARPNESS
         p_mu = torch.stack(peak_energy) / sg_integral(p_sharp).unsqueeze(-1)
         axis = torch.cat([p_axis, wide_axis])
         sharpness = torch.cat([p_sharp, wide_sharp])
         amplitude = torch.cat([p_mu, wide_mu])
     else:
         axis, sharpness, amplitude = wide_axis, wide_sharp, wide_mu
-    return SGInit(axis, sharpness, amplitude)
+    return SGInit(axis, sharpness, amplitude, len(peaks) - 1 if sun_axis is not None else None)
+
+
+@torch.no_grad()
+def sharpen_lobe(env, k: int, sharpness: float) -> None:
+    """Lobe ``k`` of an :class:`~nefii.fields.environment.SGEnvironment` set to ``sharpness``, its amplitude scaled
+    so that its integral (its energy) is unchanged."""
+    old = env.log_sharpness[k].exp()
+    new = torch.tensor(sharpness, dtype=old.dtype, device=old.device)
+    env.log_amplitude[k] += (sg_integral(old) / sg_integral(new)).log()
+    env.log_sharpness[k] = new.log()
 
 
 @torch.no_grad()

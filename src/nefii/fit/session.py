@@ -22,7 +22,7 @@ from .build import build_model
 from .config import FitConfig
 from .distributed import DistContext
 from .geometry_source import GeometrySource, adapt_to_source, resolve_source
-from .light_init import estimate_light, set_sg_parameters, sg_from_light
+from .light_init import SGInit, estimate_light, set_sg_parameters, sg_from_light
 from .model import NeFIIModel
 from .pixels import Pixels, first_hits
 from .trainer import Trainer
@@ -62,17 +62,17 @@ def describe_geometry(source: GeometrySource, geometry: Geometry, cfg: FitConfig
     return what
 
 
-def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg: FitConfig) -> int:
-    """The SG lobes from the pixels' diffuse shading and shadows (``light.init = shading``); returns the
-    number of sharp lobes placed (0 when the config asks for no such start)."""
+def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg: FitConfig) -> SGInit | None:
+    """The SG lobes from the pixels' diffuse shading and shadows (``light.init = shading``), as set in
+    ``model``; None when the config asks for no such start."""
     if cfg.light.kind != "sg" or cfg.light.init != "shading":
-        return 0
+        return None
     pts = pixels.points
     est = estimate_light(pts.position, pts.normal, pts.geometric_normal, pixels.rgb, geometry,
                          generator=torch.Generator().manual_seed(cfg.seed), ray_offset=cfg.ray_offset)
     init = sg_from_light(est, cfg.light.num_lobes, sharp=cfg.light.sharpness_init_peak)
     set_sg_parameters(model.env, init)
-    return int((init.sharpness == cfg.light.sharpness_init_peak).sum())
+    return init
 
 
 FAR = 100.0
@@ -124,11 +124,17 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
             say(f"the photos' EXIF exposures are {span:.1f} stops apart: --set exposure=per_view learns a gain "
                 "per photo")
     model = build_model(cfg, box, features)
-    if checkpoint is None:
-        n_sharp = initialise_light(model, pixels, geometry, cfg)
+    sun_lobe = None
+    if checkpoint is None and (init := initialise_light(model, pixels, geometry, cfg)) is not None:
+        sun_lobe = init.sun_lobe
+        n_sharp = int((init.sharpness == cfg.light.sharpness_init_peak).sum())
         if n_sharp:
             say(f"lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
-    trainer = Trainer(cfg, model, geometry, pixels, device, dist, num_views=len(scene), metered=scene.exposure)
+        elif sun_lobe is not None:
+            say("lighting initialised from shading and shadows (no sharp peak: a lobe on the direction that best "
+                "explains the shading, sharpened when the roughness warm-up ends)")
+    trainer = Trainer(cfg, model, geometry, pixels, device, dist, num_views=len(scene), metered=scene.exposure,
+                      sun_lobe=sun_lobe)
     if checkpoint is not None:
         checkpoint.restore(trainer.load_state_dict, "this run's model")
         say(f"resumed from {checkpoint.path} at step {trainer.step}")

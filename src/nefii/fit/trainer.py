@@ -24,6 +24,7 @@ from ..render.sg import sg_detach_sharper, sg_eval, sg_integral
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
 from .exposure import ViewGains
+from .light_init import sharpen_lobe
 from .light_prior import light_coverage, unseen_light_prior
 from .light_solve import (average_quadratic, background_quadratic, linear_term, lobe_design, pixel_quadratic,
                           solve_nonnegative)
@@ -63,9 +64,11 @@ class StepLog:
 class Trainer:
     def __init__(self, cfg: FitConfig, model: NeFIIModel, geometry: Geometry, pixels: Pixels,
                  device: torch.device, dist: DistContext = DistContext(), num_views: int = 1,
-                 metered: Tensor | None = None) -> None:
+                 metered: Tensor | None = None, sun_lobe: int | None = None) -> None:
         """``num_views``: the training views (``exposure = per_view`` learns a gain for each); ``metered``: their
-        EXIF exposures, where the gains start (:class:`nefii.fit.exposure.ViewGains`)."""
+        EXIF exposures, where the gains start (:class:`nefii.fit.exposure.ViewGains`); ``sun_lobe``: the SG lobe
+        the light's start put on a searched sun, sharpened to ``light.sharpness_init_peak`` when the roughness
+        warm-up ends (:mod:`nefii.fit.light_init`)."""
         self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
         self.dist = dist
         self.gains = ViewGains(num_views, metered).to(device) if cfg.exposure == "per_view" else None
@@ -91,6 +94,7 @@ class Trainer:
                          if cfg.light_prior > 0 else None)
         solves = cfg.light.kind == "sg" and cfg.loss == "l2_pair"     # what light_solve's quadratic is
         self.light_solve = LightSolveSchedule(cfg.light_solve_every if solves else 0, cfg.steps)
+        self.sun_lobe = sun_lobe
         self.step = 0
 
     # ---- one step
@@ -166,6 +170,8 @@ class Trainer:
     def train_step(self) -> StepLog:
         cfg, step, model = self.cfg, self.step, self.model
         rough = self.warmup.override(step)
+        if self.sun_lobe is not None and step == self.warmup.steps and isinstance(model.env, SGEnvironment):
+            sharpen_lobe(model.env, self.sun_lobe, cfg.light.sharpness_init_peak)
         if self.light_solve.due(step):
             self.solve_light(rough)
         if self.alternation.unobserved(step) and len(self.buffer) > 0:
@@ -216,10 +222,12 @@ class Trainer:
             "buffer": self.buffer.state_dict(),
             "config": config_to_dict(self.cfg),
             "gains": None if self.gains is None else self.gains.state_dict(),
+            "sun_lobe": self.sun_lobe,
         }
 
     def load_state_dict(self, state: dict) -> None:
         self.step = int(state["step"])
+        self.sun_lobe = state.get("sun_lobe")                     # checkpoints from before the sun search: none
         self.model.load_state_dict(state["model"])
         if self.gains is not None:
             self.gains.load_state_dict(state["gains"])
