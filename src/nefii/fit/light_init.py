@@ -18,9 +18,9 @@ wide lobes on a Fibonacci lattice.
 
 A low sun can escape that rule: a vertical face sees a direction 8 degrees above the horizon and
 its mirror below at the same cosine, and the least-squares energies spread the sun over both and
-their neighbours, no direction carrying a peak's share (leaning: 3.4% at most). So the shading is
-also fitted by one direction plus a uniform sky (:func:`search_sun`, 4096 directions), and where
-the energies hold no peak at all that direction gets a lobe of its own. The search finds a sun to
+their neighbours, no direction carrying a peak's share (leaning: 3.4% at most). So where the
+energies hold no peak at all, the shading is also fitted by one direction plus a uniform sky
+(:func:`search_sun`, 4096 directions), and that direction gets a lobe of its own. The search finds a sun to
 ~8 degrees only (the shading of a constant albedo says no more; where the energies do show a
 peak, theirs is closer: the bowl's sun 1.8 degrees, the search's 8.7), so the lobe starts wide
 (:data:`SUN_START_SHARPNESS`, ~6 degrees), which Adam moves onto the sun while the roughness warms
@@ -50,6 +50,9 @@ class LightEstimate:
     sun: Float[Tensor, "3"] | None = None
     """the direction :func:`search_sun` found (None: no search, or no direction fits)"""
 
+
+PEAK_FRACTION = 0.05
+"""the share of the total energy a direction must carry to become a sharp lobe (:func:`sg_from_light`)"""
 
 SUN_START_SHARPNESS = 100.0
 """the searched sun's lobe's sharpness until the warm-up ends (~6 degrees wide: it overlaps a sun 8 degrees
@@ -81,9 +84,10 @@ def search_sun(T: Float[Tensor, "P D"], colour: Float[Tensor, "P C"]) -> tuple[i
 def estimate_light(position: Tensor, normal: Tensor, geometric_normal: Tensor, colour: Tensor, geometry: Geometry,
                    num_directions: int = 1024, num_points: int = 4096, iterations: int = 200,
                    generator: torch.Generator | None = None, ray_offset: float = 1e-4,
-                   sun_directions: int = 4096) -> LightEstimate:
-    """Non-negative per-direction energies that best explain ``colour`` as diffuse shading with shadows, and
-    the sun :func:`search_sun` finds on ``sun_directions`` directions (0: no search)."""
+                   sun_directions: int = 4096, peak_fraction: float = PEAK_FRACTION) -> LightEstimate:
+    """Non-negative per-direction energies that best explain ``colour`` as diffuse shading with shadows, and,
+    only where no direction carries ``peak_fraction`` of their total (no peak for :func:`sg_from_light`, the one
+    case it places the sun), the sun :func:`search_sun` finds on ``sun_directions`` directions (0: no search)."""
     P = position.shape[0]
     idx = torch.randperm(P, generator=generator)[:num_points] if P > num_points else torch.arange(P)
     x, n, ng, c = position[idx].cpu(), normal[idx].cpu(), geometric_normal[idx].cpu(), colour[idx].cpu()
@@ -92,7 +96,8 @@ def estimate_light(position: Tensor, normal: Tensor, geometric_normal: Tensor, c
     T = visible_cosines(x, n, ng, geometry, dirs, offset)    # (P, D)
     e = nnls_fista(T, c, iterations)
     sun = None
-    if sun_directions > 0:
+    lum = e.clamp_min(0.0).mean(-1)
+    if sun_directions > 0 and bool(lum.max() < peak_fraction * lum.sum()):
         fine = fibonacci_sphere(sun_directions)
         j, explained = search_sun(visible_cosines(x, n, ng, geometry, fine, offset), c)
         sun = fine[j] if explained > 0 else None
@@ -129,7 +134,7 @@ class SGInit:
 
 
 def sg_from_light(est: LightEstimate, num_lobes: int, albedo: float = 0.5, num_sharp: int = 8,
-                  sharp: float = 800.0, separation_deg: float = 15.0, peak_fraction: float = 0.05) -> SGInit:
+                  sharp: float = 800.0, separation_deg: float = 15.0, peak_fraction: float = PEAK_FRACTION) -> SGInit:
     """Lobes for an :class:`LightEstimate`: up to ``num_sharp`` (and at most K/8) sharp lobes on directions
     that each carry at least ``peak_fraction`` of the total energy (at least ``separation_deg`` apart), or, when
     no direction does, one on the estimate's ``sun`` if it has one (with the energy around it), and wide lobes on a
