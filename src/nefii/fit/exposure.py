@@ -24,6 +24,19 @@ GAIN_PRIOR = 1e-3
 whose pixels are all clipped), far below the colour loss of any view with data"""
 
 
+def metered_log_gains(metered: Float[Tensor, "V"]) -> Float[Tensor, "V"]:
+    """``log e_v`` centred over the views: where the gains of views with EXIF exposures ``metered`` start."""
+    log_e = metered.double().log()
+    return (log_e - log_e.mean()).float()
+
+
+def without_gains(rgb: Float[Tensor, "P 3"], view: Int[Tensor, "P"],
+                  log_gain: Float[Tensor, "V"]) -> Float[Tensor, "P 3"]:
+    """Pixel colours ``rgb`` from views ``view`` divided by their views' gains ``exp(log_gain)``: the radiance
+    the model renders for them."""
+    return rgb / log_gain.to(rgb).exp()[view][:, None]
+
+
 class ViewGains(nn.Module):
     """A free ``log g`` per view and channel, centred over the views; starts at gain 1 everywhere, or at the
     views' ``metered`` exposures (EXIF) relative to their geometric mean."""
@@ -36,8 +49,7 @@ class ViewGains(nn.Module):
         if metered is not None:
             if metered.shape != (num_views,) or not bool((metered > 0).all()):
                 raise ValueError(f"metered exposures must be ({num_views},) and positive, got {tuple(metered.shape)}")
-            log_e = metered.double().log()
-            start = (log_e - log_e.mean()).float()[:, None].expand(num_views, 3).clone()
+            start = metered_log_gains(metered)[:, None].expand(num_views, 3).clone()
         self.register_buffer("expected", start.clone(), persistent=False)   # from the data, not the fit
         self.log_gain = nn.Parameter(start)
 

@@ -21,6 +21,7 @@ from ..raycast.base import Geometry
 from .build import build_model
 from .config import FitConfig
 from .distributed import DistContext
+from .exposure import metered_log_gains, without_gains
 from .geometry_source import GeometrySource, adapt_to_source, resolve_source
 from .light_init import SGInit, estimate_light, set_sg_parameters, sg_from_light
 from .model import NeFIIModel
@@ -62,13 +63,19 @@ def describe_geometry(source: GeometrySource, geometry: Geometry, cfg: FitConfig
     return what
 
 
-def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg: FitConfig) -> SGInit | None:
+def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg: FitConfig,
+                     metered: Tensor | None = None) -> SGInit | None:
     """The SG lobes from the pixels' diffuse shading and shadows (``light.init = shading``), as set in
-    ``model``; None when the config asks for no such start."""
+    ``model``; None when the config asks for no such start. With per-view gains (``exposure = per_view``) and the
+    views' EXIF exposures ``metered`` (V,), the colours are read with the gains' start divided out, as the fit
+    will render them: a view shot a stop brighter is not a brighter sky where it looks (on leaning's phone
+    capture the searched sun 17 -> 10 degrees from the truth; docs/experiments.md, 2026-11-29)."""
     if cfg.light.kind != "sg" or cfg.light.init != "shading":
         return None
-    pts = pixels.points
-    est = estimate_light(pts.position, pts.normal, pts.geometric_normal, pixels.rgb, geometry,
+    pts, rgb = pixels.points, pixels.rgb
+    if metered is not None and cfg.exposure == "per_view":
+        rgb = without_gains(rgb, pixels.view, metered_log_gains(metered))
+    est = estimate_light(pts.position, pts.normal, pts.geometric_normal, rgb, geometry,
                          generator=torch.Generator().manual_seed(cfg.seed), ray_offset=cfg.ray_offset)
     init = sg_from_light(est, cfg.light.num_lobes, sharp=cfg.light.sharpness_init_peak)
     set_sg_parameters(model.env, init)
@@ -125,7 +132,7 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
                 "per photo")
     model = build_model(cfg, box, features)
     sun_lobe = None
-    if checkpoint is None and (init := initialise_light(model, pixels, geometry, cfg)) is not None:
+    if checkpoint is None and (init := initialise_light(model, pixels, geometry, cfg, scene.exposure)) is not None:
         sun_lobe = init.sun_lobe
         n_sharp = int((init.sharpness == cfg.light.sharpness_init_peak).sum())
         if n_sharp:
