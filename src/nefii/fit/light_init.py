@@ -148,13 +148,14 @@ def sg_from_light(est: LightEstimate, num_lobes: int, albedo: float = 0.5, num_s
     peaks: list[int] = []
     cos_sep = math.cos(math.radians(separation_deg))
     threshold = peak_fraction * lum.sum()
+    max_sharp = min(num_sharp, num_lobes // 8)
     for j in torch.argsort(lum, descending=True).tolist():
-        if len(peaks) >= min(num_sharp, num_lobes // 8) or lum[j] < threshold:
+        if len(peaks) >= max_sharp or lum[j] < threshold:
             break
         if all(float(dirs[j] @ dirs[k]) < cos_sep for k in peaks):
             peaks.append(j)
     sun_axis = None                     # no peak at all: the searched sun, if any, becomes one
-    if est.sun is not None and not peaks and min(num_sharp, num_lobes // 8) > 0:
+    if est.sun is not None and not peaks and max_sharp > 0:
         sun_axis = est.sun / est.sun.norm()
         peaks.append(int((dirs @ sun_axis).argmax()))
     K_wide = num_lobes - len(peaks)
