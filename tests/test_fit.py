@@ -141,10 +141,10 @@ def test_the_brdf_of_each_preset_and_of_runs_saved_before_it_was_a_setting():
 def test_eq8_moves_what_of_the_material_it_is_asked_to(tiny_scene):
     """The unobserved step (Eq. 8) trains the cache whatever ``unobserved_material`` says; the material's
     albedo with ``all`` (the official code's neither-side-detached) and ``albedo``, its roughness with
-    ``all`` only."""
-    assert resolve_config("cpu", []).unobserved_material == "albedo"
+    ``all`` only, neither with ``none`` (the ``cpu`` preset)."""
+    assert resolve_config("cpu", []).unobserved_material == "none"
     assert resolve_config("paper", []).unobserved_material == "all"
-    for learn in ("all", "albedo"):
+    for learn in ("all", "albedo", "none"):
         cfg = resolve_config("tiny", [f"unobserved_material={learn}", "unobserved_every=2", "roughness_warmup=0"])
         trainer = prepare_fit(cfg, tiny_scene).trainer
         assert trainer.train_step().kind == "observed"                  # fills the secondary-hit buffer
@@ -154,7 +154,7 @@ def test_eq8_moves_what_of_the_material_it_is_asked_to(tiny_scene):
         assert any(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in model.cache.parameters())
         grad = last.grad if last.grad is not None else torch.zeros_like(last)
         albedo_rows, roughness_row = grad[:3].abs().sum(), grad[3].abs().sum()
-        assert bool(albedo_rows > 0), learn
+        assert bool(albedo_rows > 0) == (learn != "none"), learn
         assert bool(roughness_row > 0) == (learn == "all"), learn
 
 

@@ -80,11 +80,13 @@ class FitConfig:
     """K: every K-th step trains on unobserved rays instead (paper K = 10)"""
     unobserved: bool = True
     """ablation: train on unobserved rays at all"""
-    unobserved_material: Literal["all", "albedo"] = "albedo"
+    unobserved_material: Literal["all", "albedo", "none"] = "none"
     """what of the material Eq. 8 moves at the secondary hits: ``all`` (the official code: neither side
-    detached) or ``albedo`` (roughness held fixed there). The cache sees a point's outgoing radiance
-    through a few Fourier frequencies of direction, so pulling roughness towards it blurs a glossy lobe and
-    kept the fit's roughness rough (docs/experiments.md, 2026-11-25)"""
+    detached), ``albedo`` (roughness held fixed there) or ``none`` (Eq. 8 trains the cache and the light only).
+    The cache sees a point's outgoing radiance through a few Fourier frequencies of direction, so pulling
+    roughness towards it blurs a glossy lobe and kept the fit's roughness rough (docs/experiments.md,
+    2026-11-25); pulling the albedo towards it cost leaning and the corner 0.7-1.2 dB (2026-11-29, sixteenth
+    session)"""
     unobserved_light: Literal["all", "resolvable"] = "resolvable"
     """what of the SG light Eq. 8 trains: ``all`` (the official code) or the lobes the cache can hold in direction
     (``RadianceCache.max_lobe_sharpness``; a sharper lobe, a sun, is a constant of Eq. 8's gradient). The cache

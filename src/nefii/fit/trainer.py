@@ -44,6 +44,17 @@ AMPLITUDE_MIN = 1e-4
 """the least amplitude a solved lobe keeps (its log is the parameter)"""
 
 
+def learned_part(material: Material, learn: str) -> Material:
+    """``material`` with the gradient stopped on what a loss is not to train: ``all`` (nothing stopped),
+    ``albedo`` (the roughness stopped) or ``none`` (both stopped)."""
+    if learn == "all":
+        return material
+    if learn not in ("albedo", "none"):
+        raise ValueError(f"unknown material part {learn!r} (all | albedo | none)")
+    albedo = material.albedo if learn == "albedo" else material.albedo.detach()
+    return Material(albedo, material.roughness.detach(), material.brdf)
+
+
 def transport_of(cfg: FitConfig) -> Transport:
     """The light paths a run's estimator follows (training, eval and previews alike)."""
     return Transport(indirect=cfg.indirect, visibility=cfg.visibility, ray_offset=cfg.ray_offset)
@@ -105,13 +116,12 @@ class Trainer:
         j = torch.randint(max(len(px.bg_dirs), 1), (nb,), generator=g, device=self.device)
         return px.select(i, j)
 
-    def _trace(self, pts: SurfacePoints, rough: float | None, train_roughness: bool = True,
+    def _trace(self, pts: SurfacePoints, rough: float | None, learn: str = "all",
                environment: Callable[[Tensor], Tensor] | None = None, num_samples: int | None = None):
-        """The material at ``pts`` and the estimator's colour there (Eq. 2-4); with ``train_roughness`` False
-        the estimate's gradient reaches the albedo but not the roughness. ``environment``: see ``path_trace``."""
-        material = decode_material(self.model, pts.position, pts.lookup_normal, rough)
-        if not train_roughness:
-            material = Material(material.albedo, material.roughness.detach(), material.brdf)
+        """The material at ``pts`` and the estimator's colour there (Eq. 2-4); ``learn`` says what of the material
+        the estimate's gradient reaches (``all``, ``albedo`` or ``none``, as ``FitConfig.unobserved_material``).
+        ``environment``: see ``path_trace``."""
+        material = learned_part(decode_material(self.model, pts.position, pts.lookup_normal, rough), learn)
         traced = path_trace(self.model, self.geometry, pts, material, num_samples or self.cfg.num_samples,
                             self.generator, self.transport, environment=environment)
         return material, traced
@@ -177,8 +187,7 @@ class Trainer:
         if self.alternation.unobserved(step) and len(self.buffer) > 0:
             # ---- Eq. 8: secondary hits drawn from the buffer, path-traced against the cache there
             pts = self.buffer.sample(cfg.unobserved_points, self.generator)
-            _, traced = self._trace(pts, rough, train_roughness=cfg.unobserved_material == "all",
-                                    environment=self._consistency_light())
+            _, traced = self._trace(pts, rough, cfg.unobserved_material, environment=self._consistency_light())
             terms = unobserved_loss(traced, model.cache(pts.position, pts.normal, pts.wo), cfg.tonemap, cfg.loss)
             kind = "unobserved"
         else:
