@@ -85,7 +85,7 @@ class FitConfig:
     detached), ``albedo`` (roughness held fixed there) or ``none`` (Eq. 8 trains the cache and the light only).
     The cache sees a point's outgoing radiance through a few Fourier frequencies of direction, so pulling
     roughness towards it blurs a glossy lobe and kept the fit's roughness rough (docs/experiments.md,
-    2026-11-25); pulling the albedo towards it cost leaning and the corner 0.7-1.2 dB (2026-11-29, sixteenth
+    2026-11-25); pulling the albedo towards it cost leaning and the corner 0.6-1.2 dB (2026-11-29, sixteenth
     session)"""
     unobserved_light: Literal["all", "resolvable"] = "resolvable"
     """what of the SG light Eq. 8 trains: ``all`` (the official code) or the lobes the cache can hold in direction
