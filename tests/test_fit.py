@@ -1,5 +1,6 @@
 """End to end: nefii fit and nefii eval on a tiny rendered scene; resume after SIGKILL; bad input."""
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -203,6 +204,27 @@ def test_the_searched_sun_is_sharpened_when_the_warm_up_ends_and_survives_a_chec
     del state["sun_lobe"]                                          # a checkpoint from before the search
     fresh.load_state_dict(state)
     assert fresh.sun_lobe is None
+
+
+def test_the_sky_in_a_wide_sun_lobes_glow_is_left_out_until_the_warm_up_ends(tiny_scene):
+    """Background pixels within a wide sun lobe's glow are not in the observed batches while the lobe is wide (the
+    warm-up), and are after it; without a sun lobe every background pixel may be drawn."""
+    cfg = resolve_config("tiny", ["background_pixels=512"])
+    trainer = prepare_fit(cfg, tiny_scene).trainer
+    g = torch.Generator().manual_seed(0)
+    d = torch.randn(4096, 3, generator=g)
+    d = d / d.norm(dim=-1, keepdim=True)
+    trainer.pixels = dataclasses.replace(trainer.pixels, bg_dirs=d, bg_rgb=torch.full((4096, 3), 0.5),
+                                         bg_view=torch.zeros(4096, dtype=torch.long))
+    env, k = trainer.model.env, 5
+    sharpen_lobe(env, k, SUN_START_SHARPNESS)
+    axis = env().axis[k].detach()
+    near = lambda: int(((trainer._observed_batch().bg_dirs @ axis) > math.cos(math.radians(20.0))).sum())
+    assert near() > 0                                              # no sun lobe: the whole sky
+    trainer.sun_lobe = k
+    assert near() == 0 and len(trainer._observed_batch().bg_dirs) > 400
+    trainer.step = trainer.warmup.steps
+    assert near() > 0
 
 
 def test_policies():

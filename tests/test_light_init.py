@@ -10,8 +10,8 @@ from fit_fixtures import render, scene_mesh
 from nefii.camera import intrinsics_from_fov, look_at, pixel_rays
 from nefii.fields.environment import SGEnvironment
 from nefii.fit.exposure import metered_log_gains, without_gains
-from nefii.fit.light_init import (SUN_START_SHARPNESS, LightEstimate, SGInit, estimate_light, nnls_fista, search_sun,
-                                  set_sg_parameters, sg_from_light, sharpen_lobe)
+from nefii.fit.light_init import (SUN_START_SHARPNESS, LightEstimate, SGInit, beyond_glow, estimate_light,
+                                  nnls_fista, search_sun, set_sg_parameters, sg_from_light, sharpen_lobe, sky_sun)
 from nefii.raycast import MeshGeometry, Rays
 from nefii.raycast.base import visible_cosines
 from nefii.render.brdf import BRDFModel
@@ -127,6 +127,62 @@ def test_the_start_reads_photos_with_their_exposures_divided_out():
 
     assert off(read) < 1e-3      # float32 rounding in the iterations (measured 1.2e-4)
     assert off(raw) > 0.05       # measured 0.30
+
+
+def sky_photos(radiance, views: int = 64, per_view: int = 4000) -> tuple[torch.Tensor, torch.Tensor]:
+    """Background pixels of ``views`` photos, each seeing ``per_view`` directions of the upper hemisphere and a
+    little below it at its own exposure (a gain within +-1 EV): their directions and whether they clip."""
+    g = torch.Generator().manual_seed(0)
+    d = torch.randn(views * per_view, 3, generator=g)
+    d = d / d.norm(dim=-1, keepdim=True)
+    d[:, 2] = d[:, 2].abs() - 0.2
+    d = d / d.norm(dim=-1, keepdim=True)
+    gain = torch.exp2(torch.rand(views, generator=g) * 2 - 1).repeat_interleave(per_view)
+    return d, radiance(d) * gain >= 1.0
+
+
+def test_sky_sun_places_a_clipped_sun_and_nothing_where_the_sky_clips_only_in_bright_views():
+    """A low sun (a 6-degree disc) in a sky whose bright half clips in the brighter exposures only: the centre of the
+    directions clipped in every view is within 2 degrees of the sun; the sky alone, two suns far apart, or nothing
+    clipped: no source."""
+    sun = torch.tensor([0.8, -0.55, 0.14])
+    sun = sun / sun.norm()                                              # 8 degrees above the horizon
+    other = torch.tensor([-0.6, 0.3, 0.74])
+    other = other / other.norm()
+
+    def sky(d):                           # 0.3 to 1.3: clips in views brighter than 1/1.3 of the metered exposure
+        return 0.8 + 0.5 * d[:, 0]
+
+    def disc(d, axis):
+        return torch.where(d @ axis > math.cos(math.radians(6.0)), 50.0, 0.0)
+
+    found = sky_sun(*sky_photos(lambda d: sky(d) + disc(d, sun)))
+    assert found is not None and angle_deg(found, sun) < 2.0
+    assert sky_sun(*sky_photos(sky)) is None
+    assert sky_sun(*sky_photos(lambda d: sky(d) + disc(d, sun) + disc(d, other))) is None
+    assert sky_sun(*sky_photos(lambda d: 0.2 + 0.0 * d[:, 0])) is None
+
+
+def test_a_seen_sun_stands_for_the_search_only_where_the_energies_show_no_peak():
+    seen = torch.tensor([0.0, 0.6, 0.8])
+    geometry, (x, n, ng, c), _ = observe(sun_and_sky(torch.tensor([0.6, -0.48, 0.64])))
+    assert estimate_light(x, n, ng, c, geometry, seen_sun=seen).sun is None        # the shading holds a peak
+    uniform = SGMixture(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([1e-4]), torch.tensor([[0.3, 0.3, 0.3]]))
+    geometry, (x, n, ng, c), _ = observe(uniform)
+    assert torch.equal(estimate_light(x, n, ng, c, geometry, seen_sun=seen).sun, seen)
+
+
+def test_beyond_glow_is_where_the_lobe_falls_below_its_floor():
+    g = torch.Generator().manual_seed(3)
+    d = torch.randn(5000, 3, generator=g)
+    d = d / d.norm(dim=-1, keepdim=True)
+    axis = torch.tensor([0.0, 0.0, 1.0])
+    for sharpness, floor in ((100.0, 1e-4), (800.0, 1e-4), (30.0, 1e-2)):
+        value = torch.exp(sharpness * (d @ axis - 1.0))
+        assert torch.equal(beyond_glow(d, axis, sharpness, floor), value < floor)
+    edge = math.radians(24.9)                            # sharpness 100, floor 1e-4: 24.9 degrees
+    inside, outside = (torch.tensor([math.sin(a), 0.0, math.cos(a)]) for a in (edge - 0.01, edge + 0.01))
+    assert beyond_glow(torch.stack([inside, outside]), axis, 100.0).tolist() == [False, True]
 
 
 def test_sharpening_a_lobe_keeps_its_energy():

@@ -27,6 +27,14 @@ peak, theirs is closer: the bowl's sun 1.8 degrees, the search's 8.7), so the lo
 up (a sharp lobe that far off stays where it is), and is sharpened to a peak's sharpness when the
 warm-up ends (:func:`sharpen_lobe`; a wide lobe is not sharpened by Adam). Leaning's sun left as
 wide lobes cost it 1.5 dB of albedo (docs/experiments.md, 2026-11-29).
+
+Photos without masks see the sky behind the object, and a sun in frame clips. Where the background's clipped
+pixels gather in one compact patch of directions that clips in every view that sees it, dark exposures included
+(:func:`sky_sun`), that patch's centre places the sun's lobe instead of the search (leaning's phone capture: 5
+degrees from the sun where the shading's search is 10 off). While that lobe is wide, the background pixels in its
+glow (:func:`beyond_glow`) are left out of Eq. 7's third term and of the light solve: a 6-degree lobe standing for
+a 1-degree sun over-predicts the unclipped sky around it tens of times, and those pixels pushed the lobe off the
+sun (leaning's capture: 10 to 17 degrees) or the solve emptied it.
 """
 from __future__ import annotations
 
@@ -34,7 +42,7 @@ import math
 from dataclasses import dataclass
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from torch import Tensor
 
 from ..raycast.base import Geometry, visible_cosines
@@ -80,14 +88,54 @@ def search_sun(T: Float[Tensor, "P D"], colour: Float[Tensor, "P C"]) -> tuple[i
     return j, max(0.0, 1.0 - float(resid[j]) / base)
 
 
+SKY_SUN_BINS = 4096
+"""directions the background pixels are binned to when looking for a light source they see (~3.2 degrees apart)"""
+
+
+def sky_sun(directions: Float[Tensor, "Q 3"], clipped: Bool[Tensor, " Q"], min_seen: int = 20,
+            always: float = 0.99, max_spread_deg: float = 20.0) -> Float[Tensor, "3"] | None:
+    """The direction of a light source the background pixels see directly, from where they clip. Their view
+    directions binned on a Fibonacci lattice of :data:`SKY_SUN_BINS`; a bin seen by at least ``min_seen`` pixels
+    of which ``always`` or more are clipped is brighter than every view's exposure can hold (a bright sky clips
+    only in the brighter views); the mean of those bins' directions, weighted by how often each is seen, when
+    every one of them lies within ``max_spread_deg`` of it (one compact source); None otherwise."""
+    if not bool(clipped.any()):
+        return None
+    lattice = fibonacci_sphere(SKY_SUN_BINS).to(directions)
+    nearest = torch.cat([(part @ lattice.T).argmax(-1) for part in directions.split(4096)])   # 64 MiB at a time
+    seen = torch.bincount(nearest, minlength=SKY_SUN_BINS).double()
+    hot = torch.bincount(nearest[clipped], minlength=SKY_SUN_BINS).double()
+    always_clipped = (seen >= min_seen) & (hot >= always * seen)
+    if not bool(always_clipped.any()):
+        return None
+    bins = lattice[always_clipped].double()
+    centre = (bins * seen[always_clipped, None]).sum(0)
+    centre = centre / centre.norm()
+    spread = math.degrees(math.acos(min(1.0, float((bins @ centre).min()))))
+    return centre.to(directions.dtype) if spread <= max_spread_deg else None
+
+
+GLOW_FLOOR = 1e-4
+"""the fraction of a lobe's peak below which :func:`beyond_glow` counts a direction out of its glow"""
+
+
+def beyond_glow(directions: Float[Tensor, "Q 3"], axis: Float[Tensor, "3"], sharpness: float,
+                floor: float = GLOW_FLOOR) -> Bool[Tensor, " Q"]:
+    """Whether each direction lies where a lobe of ``sharpness`` about the unit ``axis`` has fallen below ``floor``
+    of its peak (``exp(sharpness (cos - 1)) < floor``; sharpness 100: 25 degrees, 800: 8.8)."""
+    return (directions @ axis) < 1.0 - math.log(1.0 / floor) / max(sharpness, 1e-12)
+
+
 @torch.no_grad()
 def estimate_light(position: Tensor, normal: Tensor, geometric_normal: Tensor, colour: Tensor, geometry: Geometry,
                    num_directions: int = 1024, num_points: int = 4096, iterations: int = 200,
                    generator: torch.Generator | None = None, ray_offset: float = 1e-4,
-                   sun_directions: int = 4096, peak_fraction: float = PEAK_FRACTION) -> LightEstimate:
+                   sun_directions: int = 4096, peak_fraction: float = PEAK_FRACTION,
+                   seen_sun: Float[Tensor, "3"] | None = None) -> LightEstimate:
     """Non-negative per-direction energies that best explain ``colour`` as diffuse shading with shadows, and,
     only where no direction carries ``peak_fraction`` of their total (no peak for :func:`sg_from_light`, the one
-    case it places the sun), the sun :func:`search_sun` finds on ``sun_directions`` directions (0: no search)."""
+    case it places the sun), the sun: ``seen_sun`` (:func:`sky_sun`) if given, else the one :func:`search_sun`
+    finds on ``sun_directions`` directions (0: no search)."""
     P = position.shape[0]
     idx = torch.randperm(P, generator=generator)[:num_points] if P > num_points else torch.arange(P)
     x, n, ng, c = position[idx].cpu(), normal[idx].cpu(), geometric_normal[idx].cpu(), colour[idx].cpu()
@@ -97,7 +145,10 @@ def estimate_light(position: Tensor, normal: Tensor, geometric_normal: Tensor, c
     e = nnls_fista(T, c, iterations)
     sun = None
     lum = e.clamp_min(0.0).mean(-1)
-    if sun_directions > 0 and bool(lum.max() < peak_fraction * lum.sum()):
+    no_peak = bool(lum.max() < peak_fraction * lum.sum())
+    if no_peak and seen_sun is not None:
+        sun = seen_sun.cpu().float()
+    elif no_peak and sun_directions > 0:
         fine = fibonacci_sphere(sun_directions)
         j, explained = search_sun(visible_cosines(x, n, ng, geometry, fine, offset), c)
         sun = fine[j] if explained > 0 else None

@@ -130,6 +130,21 @@ def first_hits(scene: SceneData, geometry: Geometry) -> Pixels:
                   torch.cat(bg_views), _footprint(scene, geometry, objs, pts))
 
 
+def background_clipping(scene: SceneData, geometry: Geometry) -> tuple[Float[Tensor, "Q 3"], Bool[Tensor, " Q"]] | None:
+    """Every background pixel's view direction, clipped ones included, and whether it is clipped (what
+    :func:`nefii.fit.light_init.sky_sun` reads); None where no background shows or nothing is clipped."""
+    if not scene.background_visible or scene.clipped is None:
+        return None
+    dirs, clipped = [], []
+    for v in range(len(scene)):
+        o, d = view_rays(scene, v)
+        hit = geometry.intersect(Rays(o.reshape(-1, 3), d.reshape(-1, 3)))
+        bg = ~hit.valid if scene.masks is None else ~hit.valid & ~scene.masks[v].reshape(-1)
+        dirs.append(d.reshape(-1, 3)[bg])
+        clipped.append(scene.clipped[v].reshape(-1)[bg])
+    return torch.cat(dirs), torch.cat(clipped)
+
+
 def _footprint(scene: SceneData, geometry: Geometry, objs: list[Bool[Tensor, "HW"]],
                centres: list[SurfacePoints]) -> SurfacePoints:
     """:attr:`Pixels.footprint` of all views: written view by view into tensors allocated once, since the per-view

@@ -23,9 +23,9 @@ from .config import FitConfig
 from .distributed import DistContext
 from .exposure import metered_log_gains, without_gains
 from .geometry_source import GeometrySource, adapt_to_source, resolve_source
-from .light_init import SGInit, estimate_light, set_sg_parameters, sg_from_light
+from .light_init import SGInit, estimate_light, set_sg_parameters, sg_from_light, sky_sun
 from .model import NeFIIModel
-from .pixels import Pixels, first_hits
+from .pixels import Pixels, background_clipping, first_hits
 from .trainer import Trainer
 
 
@@ -64,19 +64,22 @@ def describe_geometry(source: GeometrySource, geometry: Geometry, cfg: FitConfig
 
 
 def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg: FitConfig,
-                     metered: Tensor | None = None) -> SGInit | None:
+                     metered: Tensor | None = None, seen_sun: Tensor | None = None) -> SGInit | None:
     """The SG lobes from the pixels' diffuse shading and shadows (``light.init = shading``), as set in
     ``model``; None when the config asks for no such start. With per-view gains (``exposure = per_view``) and the
     views' EXIF exposures ``metered`` (V,), the colours are read with the gains' start divided out, as the fit
     will render them: a view shot a stop brighter is not a brighter sky where it looks (on leaning's phone
-    capture the searched sun 17 -> 10 degrees from the truth; docs/experiments.md, 2026-11-29)."""
+    capture the searched sun 17 -> 10 degrees from the truth; docs/experiments.md, 2026-11-29). ``seen_sun``: a
+    light source the background sees (:func:`nefii.fit.light_init.sky_sun`), used where the shading shows no
+    peak."""
     if cfg.light.kind != "sg" or cfg.light.init != "shading":
         return None
     pts, rgb = pixels.points, pixels.rgb
     if metered is not None and cfg.exposure == "per_view":
         rgb = without_gains(rgb, pixels.view, metered_log_gains(metered))
     est = estimate_light(pts.position, pts.normal, pts.geometric_normal, rgb, geometry,
-                         generator=torch.Generator().manual_seed(cfg.seed), ray_offset=cfg.ray_offset)
+                         generator=torch.Generator().manual_seed(cfg.seed), ray_offset=cfg.ray_offset,
+                         seen_sun=seen_sun)
     init = sg_from_light(est, cfg.light.num_lobes, sharp=cfg.light.sharpness_init_peak)
     set_sg_parameters(model.env, init)
     return init
@@ -131,12 +134,18 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
             say(f"the photos' EXIF exposures are {span:.1f} stops apart: --set exposure=per_view learns a gain "
                 "per photo")
     model = build_model(cfg, box, features)
-    sun_lobe = None
-    if checkpoint is None and (init := initialise_light(model, pixels, geometry, cfg, scene.exposure)) is not None:
+    sun_lobe, seen_sun = None, None
+    if checkpoint is None and (bg := background_clipping(scene, geometry)) is not None:
+        seen_sun = sky_sun(*bg)
+    if checkpoint is None and (init := initialise_light(model, pixels, geometry, cfg, scene.exposure,
+                                                        seen_sun)) is not None:
         sun_lobe = init.sun_lobe
         n_sharp = int((init.sharpness == cfg.light.sharpness_init_peak).sum())
         if n_sharp:
             say(f"lighting initialised from shading and shadows ({n_sharp} sharp lobes)")
+        elif sun_lobe is not None and seen_sun is not None:
+            say("lighting initialised from shading and shadows (no sharp peak: a lobe on the light source the "
+                "background's clipped pixels see, sharpened when the roughness warm-up ends)")
         elif sun_lobe is not None:
             say("lighting initialised from shading and shadows (no sharp peak: a lobe on the direction that best "
                 "explains the shading, sharpened when the roughness warm-up ends)")

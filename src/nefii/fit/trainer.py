@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Callable
 
 import torch
+from jaxtyping import Bool, Float
 from torch import Tensor
 from tqdm import tqdm
 
@@ -24,7 +25,7 @@ from ..render.sg import sg_detach_sharper, sg_eval, sg_integral
 from .config import FitConfig, config_to_dict
 from .distributed import DistContext, any_rank, average_gradients
 from .exposure import ViewGains
-from .light_init import sharpen_lobe
+from .light_init import beyond_glow, sharpen_lobe
 from .light_prior import light_coverage, unseen_light_prior
 from .light_solve import (average_quadratic, background_quadratic, linear_term, lobe_design, pixel_quadratic,
                           solve_nonnegative)
@@ -114,7 +115,17 @@ class Trainer:
         i = torch.randint(len(px.points), (self.cfg.batch_pixels,), generator=g, device=self.device)
         nb = min(self.cfg.background_pixels, len(px.bg_dirs))
         j = torch.randint(max(len(px.bg_dirs), 1), (nb,), generator=g, device=self.device)
-        return px.select(i, j)
+        return px.select(i, j[self._sky_usable(px.bg_dirs[j])] if nb else j)
+
+    @torch.no_grad()
+    def _sky_usable(self, dirs: Float[Tensor, "Q 3"]) -> Bool[Tensor, " Q"]:
+        """Which background directions Eq. 7's third term and the light solve read: all, except in the glow of the
+        sun's lobe while it is wide (until the warm-up ends; :mod:`nefii.fit.light_init`)."""
+        env = self.model.env
+        if self.sun_lobe is None or self.step >= self.warmup.steps or not isinstance(env, SGEnvironment):
+            return torch.ones(len(dirs), dtype=torch.bool, device=dirs.device)
+        sg = env()
+        return beyond_glow(dirs, sg.axis[self.sun_lobe], float(sg.sharpness[self.sun_lobe]))
 
     def _trace(self, pts: SurfacePoints, rough: float | None, learn: str = "all",
                environment: Callable[[Tensor], Tensor] | None = None, num_samples: int | None = None):
@@ -165,6 +176,7 @@ class Trainer:
             q = term.scaled(len(part) / len(idx)) if q is None else q + term.scaled(len(part) / len(idx))
         if len(px.bg_dirs) and cfg.beta2 > 0 and cfg.background_pixels > 0:
             j = torch.randint(len(px.bg_dirs), (cfg.light_solve_pixels,), generator=g, device=self.device)
+            j = j[self._sky_usable(px.bg_dirs[j])]
             gain = None if self.gains is None else self.gains(px.bg_view[j])
             q = q + background_quadratic(sg, px.bg_dirs[j], px.bg_rgb[j], tonemap_slope(px.bg_rgb[j], cfg.tonemap),
                                          gain).scaled(cfg.beta2)
