@@ -174,9 +174,11 @@ class Trainer:
             gain = None if self.gains is None else self.gains(px.view[part])
             term = pixel_quadratic(design, px.rgb[part], tonemap_slope(px.rgb[part], cfg.tonemap), gain)
             q = term.scaled(len(part) / len(idx)) if q is None else q + term.scaled(len(part) / len(idx))
+        j = None
         if len(px.bg_dirs) and cfg.beta2 > 0 and cfg.background_pixels > 0:
             j = torch.randint(len(px.bg_dirs), (cfg.light_solve_pixels,), generator=g, device=self.device)
             j = j[self._sky_usable(px.bg_dirs[j])]
+        if j is not None and len(j):            # none left: every pixel drawn lies in a wide sun lobe's glow
             gain = None if self.gains is None else self.gains(px.bg_view[j])
             q = q + background_quadratic(sg, px.bg_dirs[j], px.bg_rgb[j], tonemap_slope(px.bg_rgb[j], cfg.tonemap),
                                          gain).scaled(cfg.beta2)
