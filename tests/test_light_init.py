@@ -163,6 +163,20 @@ def test_sky_sun_places_a_clipped_sun_and_nothing_where_the_sky_clips_only_in_br
     assert sky_sun(*sky_photos(lambda d: 0.2 + 0.0 * d[:, 0])) is None
 
 
+def test_sky_sun_bins_every_kth_pixel_of_a_large_capture(monkeypatch):
+    """Over :data:`SKY_SUN_PIXELS` background pixels, every k-th is binned: a quarter of the pixels place the sun
+    as all of them do."""
+    sun = torch.tensor([0.8, -0.55, 0.14])
+    sun = sun / sun.norm()
+    photos = sky_photos(lambda d: 0.8 + 0.5 * d[:, 0] + torch.where(d @ sun > math.cos(math.radians(6.0)), 50.0, 0.0))
+    whole = sky_sun(*photos)
+    monkeypatch.setattr("nefii.fit.light_init.SKY_SUN_PIXELS", len(photos[0]) // 4)
+    quarter = sky_sun(*photos)
+    assert whole is not None and quarter is not None
+    assert angle_deg(quarter, sun) < 2.0 and angle_deg(quarter, whole) < 1.0
+    assert not torch.equal(quarter, whole)                     # other counts: the subset was binned, not the whole
+
+
 def test_a_seen_sun_stands_for_the_search_only_where_the_energies_show_no_peak():
     seen = torch.tensor([0.0, 0.6, 0.8])
     geometry, (x, n, ng, c), _ = observe(sun_and_sky(torch.tensor([0.6, -0.48, 0.64])))

@@ -91,16 +91,22 @@ def search_sun(T: Float[Tensor, "P D"], colour: Float[Tensor, "P C"]) -> tuple[i
 SKY_SUN_BINS = 4096
 """directions the background pixels are binned to when looking for a light source they see (~3.2 degrees apart)"""
 
+SKY_SUN_PIXELS = 2_000_000
+"""at most this many background pixels are binned (every k-th beyond it): binning costs ~25k flops a pixel, and a
+100-photo capture at 512 px has ~15 M of them (the built-in captures at 128 px: 0.7 M, all binned)"""
+
 
 def sky_sun(directions: Float[Tensor, "Q 3"], clipped: Bool[Tensor, " Q"], min_seen: int = 20,
             always: float = 0.99, max_spread_deg: float = 20.0) -> Float[Tensor, "3"] | None:
     """The direction of a light source the background pixels see directly, from where they clip. Their view
-    directions binned on a Fibonacci lattice of :data:`SKY_SUN_BINS`; a bin seen by at least ``min_seen`` pixels
+    directions (every k-th, at most :data:`SKY_SUN_PIXELS`) binned on a Fibonacci lattice of :data:`SKY_SUN_BINS`; a bin seen by at least ``min_seen`` pixels
     of which ``always`` or more are clipped is brighter than every view's exposure can hold (a bright sky clips
     only in the brighter views); the mean of those bins' directions, weighted by how often each is seen, when
     every one of them lies within ``max_spread_deg`` of it (one compact source); None otherwise."""
     if not bool(clipped.any()):
         return None
+    stride = -(-len(directions) // SKY_SUN_PIXELS)
+    directions, clipped = directions[::stride], clipped[::stride]
     lattice = fibonacci_sphere(SKY_SUN_BINS).to(directions)
     nearest = torch.cat([(part @ lattice.T).argmax(-1) for part in directions.split(4096)])   # 64 MiB at a time
     seen = torch.bincount(nearest, minlength=SKY_SUN_BINS).double()
