@@ -161,8 +161,8 @@ def test_eq8_moves_what_of_the_material_it_is_asked_to(tiny_scene):
 
 def test_eq8_trains_only_the_light_lobes_the_cache_can_hold(tiny_scene):
     """With ``unobserved_light = resolvable`` (the ``cpu`` preset) the unobserved step leaves a lobe sharper than
-    ``unobserved_light_sharpness`` without gradient and trains the others; with ``all`` (``paper``, the official
-    code) it trains both. An old run's config reads back as ``all``."""
+    the cache's direction encoding holds without gradient and trains the others; with ``all`` (``paper``, the
+    official code) it trains both. An old run's config reads back as ``all``."""
     assert resolve_config("cpu", []).unobserved_light == "resolvable"
     assert resolve_config("paper", []).unobserved_light == "all"
     old = config_to_dict(resolve_config("cpu", []))
@@ -172,7 +172,7 @@ def test_eq8_trains_only_the_light_lobes_the_cache_can_hold(tiny_scene):
         cfg = resolve_config("tiny", [f"unobserved_light={learn}", "unobserved_every=2", "light_solve_every=0"])
         trainer = prepare_fit(cfg, tiny_scene).trainer
         env = trainer.model.env
-        limit = cfg.unobserved_light_sharpness
+        limit = trainer.model.cache.max_lobe_sharpness
         with torch.no_grad():                           # half the lobes far sharper than the cache holds
             env.log_sharpness[::2] = math.log(50.0 * limit)
             env.log_sharpness[1::2] = math.log(0.1 * limit)
@@ -182,21 +182,6 @@ def test_eq8_trains_only_the_light_lobes_the_cache_can_hold(tiny_scene):
         grad = env.log_amplitude.grad.abs().sum(-1)
         assert bool(grad[1::2].sum() > 0), learn
         assert bool(grad[::2].sum() > 0) == (learn == "all"), learn
-
-
-def test_the_cache_sees_direction_through_6_frequencies_and_eq8_keeps_the_4_frequency_limit() -> None:
-    """``cpu``: 6 direction frequencies, Eq. 8's lobe limit still the bandwidth of 4, (pi 2^3)^2 / 2; ``paper``: 4.
-    A run saved before the limit was a setting reads back with its own cache's bandwidth, as it was fitted."""
-    cpu, paper = resolve_config("cpu", []), resolve_config("paper", [])
-    assert (cpu.cache_dir_freqs, paper.cache_dir_freqs) == (6, 4)
-    assert cpu.unobserved_light_sharpness == pytest.approx((8 * math.pi) ** 2 / 2)
-    for freqs, limit in ((4, (8 * math.pi) ** 2 / 2), (5, 4 * (8 * math.pi) ** 2 / 2), (0, 0.0)):
-        old = config_to_dict(resolve_config("cpu", [f"cache_dir_freqs={freqs}"]))
-        del old["unobserved_light_sharpness"]
-        assert saved_config_from_dict(old).unobserved_light_sharpness == pytest.approx(limit), freqs
-    old = config_to_dict(cpu)
-    del old["unobserved_light_sharpness"], old["cache_dir_freqs"]
-    assert saved_config_from_dict(old).cache_dir_freqs == 4
 
 
 def test_the_searched_sun_is_sharpened_when_the_warm_up_ends_and_survives_a_checkpoint(tiny_scene):

@@ -244,3 +244,14 @@ def test_detaching_the_sharp_lobes_keeps_the_value_and_stops_their_gradient() ->
     for p in (axis, amplitude):
         assert bool((p.grad[sharp] == 0).all()) and bool((p.grad[~sharp].abs().sum(-1) > 0).all())
     assert bool((sharpness.grad[sharp] == 0).all()) and bool((sharpness.grad[~sharp] != 0).all())
+
+
+def test_the_cache_holds_lobes_up_to_its_direction_encodings_bandwidth() -> None:
+    """F Fourier frequencies reach pi 2^(F-1); a lobe of sharpness lambda has its spectrum at e^-1 at sqrt(2
+    lambda): the limit is (pi 2^(F-1))^2 / 2, four times higher for each frequency added."""
+    from nefii.fields.cache import RadianceCache
+    from nefii.fields.encodings import HashGrid
+    box = (torch.zeros(3), torch.ones(3))
+    four = RadianceCache(HashGrid(2, 2, 8, 4, 8), 4, 8, 1, box).max_lobe_sharpness
+    assert four == pytest.approx((8 * math.pi) ** 2 / 2)
+    assert RadianceCache(HashGrid(2, 2, 8, 4, 8), 5, 8, 1, box).max_lobe_sharpness == pytest.approx(4 * four)

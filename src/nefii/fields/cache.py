@@ -2,6 +2,8 @@
 used as the incoming light of secondary rays that hit the object."""
 from __future__ import annotations
 
+import math
+
 import torch
 from jaxtyping import Float
 from torch import Tensor, nn
@@ -26,6 +28,14 @@ class RadianceCache(nn.Module):
         self.net = mlp(in_dim, 3, hidden, layers)
         self.register_buffer("box_lo", torch.as_tensor(box[0], dtype=torch.float32))
         self.register_buffer("box_size", torch.as_tensor(box[1], dtype=torch.float32) - self.box_lo)
+
+    @property
+    def max_lobe_sharpness(self) -> float:
+        """The sharpest spherical Gaussian of outgoing radiance the direction encoding can hold: a lobe of
+        sharpness ``lambda`` is a Gaussian of ``1 / sqrt(lambda)`` radians, whose spectrum falls to ``e^-1`` at
+        angular frequency ``sqrt(2 lambda)``; the encoding's highest is ``pi 2^(F-1)`` (F frequencies; 0: none)."""
+        top = math.pi * 2.0 ** (self.dir_encoding.num_freqs - 1) if self.dir_encoding.num_freqs else 0.0
+        return 0.5 * top * top
 
     def forward(self, x: Float[Tensor, "*bs 3"], n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"]
                 ) -> Float[Tensor, "*bs 3"]:

@@ -6,7 +6,6 @@ The resolved config is saved as ``RUN/config.json`` and read back through the sa
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
@@ -89,16 +88,10 @@ class FitConfig:
     2026-11-25); pulling the albedo towards it cost leaning and the corner 0.6-1.2 dB (2026-11-29, sixteenth
     session)"""
     unobserved_light: Literal["all", "resolvable"] = "resolvable"
-    """what of the SG light Eq. 8 trains: ``all`` (the official code) or the lobes up to
-    ``unobserved_light_sharpness`` (a sharper lobe, a sun, is a constant of Eq. 8's gradient). The cache cannot
-    hold a sharp lobe's glossy reflection, so with neither side detached Eq. 8 widened and drained the sun that
-    the light initialisation had found (docs/experiments.md, 2026-11-27, fifth session)"""
-    unobserved_light_sharpness: Annotated[float, Range(0)] = (8 * math.pi) ** 2 / 2
-    """with ``unobserved_light = resolvable``: the sharpest SG lobe Eq. 8 trains, ~316 (a Gaussian of 3.2
-    degrees): the bandwidth of 4 Fourier frequencies of direction, where a lobe's spectrum at the highest, 8 pi,
-    has fallen to e^-1. A cache with 6 frequencies nominally holds 16 times sharper lobes, but Eq. 8 training
-    the suns (sharpness ~800) with it still drained the bowl's sun (-2.3 dB; docs/experiments.md, 2026-11-29,
-    eighteenth session)"""
+    """what of the SG light Eq. 8 trains: ``all`` (the official code) or the lobes the cache can hold in direction
+    (``RadianceCache.max_lobe_sharpness``; a sharper lobe, a sun, is a constant of Eq. 8's gradient). The cache
+    cannot hold a sharp lobe's glossy reflection, so with neither side detached Eq. 8 widened and drained the
+    sun that the light initialisation had found (docs/experiments.md, 2026-11-27, fifth session)"""
     indirect: bool = True
     """ablation: secondary hits see the radiance cache (off: black)"""
     visibility: bool = True
@@ -182,12 +175,8 @@ class FitConfig:
     offset only says which side of a wall a point is on and does not carry the reconstruction's normal noise"""
     cache: NetworkConfig = field(default_factory=NetworkConfig)
     """radiance cache L"""
-    cache_dir_freqs: Annotated[int, Range(0, 32)] = 6
-    """Fourier frequencies of the cache's direction inputs (paper: 4). Through 4 the cache returns a glossy
-    surface's reflection of its neighbours blurred, which a rough surface matches: leaning's glossy ball read
-    rough even under the true light. 6 brought the glossy parts 0.04-0.09 nearer the truth on leaning, roughness
-    MSE mean over the four built-in scenes 0.0199 -> 0.0174 at two seeds, albedo -0.09 dB (docs/experiments.md,
-    2026-11-29, eighteenth session)"""
+    cache_dir_freqs: Annotated[int, Range(0, 32)] = 4
+    """Fourier frequencies of the cache's direction inputs (paper: 4)"""
     light: LightConfig = field(default_factory=LightConfig)
     """environment light"""
     checkpoint_every_s: Annotated[float, Range(0)] = 120.0
@@ -250,7 +239,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "material": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 8},
         "cache": {"encoding": {"kind": "fourier", "fourier_freqs": 10}, "hidden": 512, "layers": 4},
         "light": {"sharpness_max": 3000.0}, "brdf": {"diffuse": "lambert", "shadowing": "schlick"},
-        "unobserved_material": "all", "unobserved_light": "all", "cache_dir_freqs": 4,
+        "unobserved_material": "all", "unobserved_light": "all",
     },
     "tiny": {
         "steps": 20, "batch_pixels": 64, "background_pixels": 16, "num_samples": 2, "unobserved_points": 64,
@@ -278,14 +267,10 @@ def saved_config_from_dict(values: dict[str, Any]) -> FitConfig:
     """A config a run saved: a setting missing from it reads back as the behaviour the run was fitted with,
     not today's default (the official BRDF before ``brdf`` existed; Eq. 8 training all of the material before
     ``unobserved_material`` existed; no light prior before ``light_prior`` existed; a constant albedo prior before
-    ``smooth_albedo_end`` existed; Eq. 8 training every lobe of the light before ``unobserved_light`` existed; its
-    limit the bandwidth of the run's cache before ``unobserved_light_sharpness`` existed)."""
-    freqs = values.get("cache_dir_freqs", 4)
+    ``smooth_albedo_end`` existed; Eq. 8 training every lobe of the light before ``unobserved_light`` existed)."""
     return config_from_dict({"brdf": {"diffuse": "lambert", "shadowing": "schlick"},
                              "unobserved_material": "all", "light_prior": 0.0, "smooth_albedo_end": 1.0,
-                             "unobserved_light": "all", "cache_dir_freqs": 4,
-                             "unobserved_light_sharpness": (math.pi * 2.0 ** (freqs - 1)) ** 2 / 2 if freqs else 0.0,
-                             **values})
+                             "unobserved_light": "all", **values})
 
 
 def config_to_dict(cfg: FitConfig) -> dict[str, Any]:

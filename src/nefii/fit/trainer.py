@@ -154,7 +154,7 @@ class Trainer:
         env = self.model.env
         if self.cfg.unobserved_light == "all" or not isinstance(env, SGEnvironment):
             return None
-        limit = self.cfg.unobserved_light_sharpness
+        limit = self.model.cache.max_lobe_sharpness
         return lambda w: sg_eval(w, sg_detach_sharper(env(), limit))
 
     @torch.no_grad()
