@@ -56,7 +56,8 @@ class LightEstimate:
     energy: Float[Tensor, "D 3"]
     """``albedo / pi * L_j dOmega_j`` of each direction (non-negative, RGB)"""
     sun: Float[Tensor, "3"] | None = None
-    """the direction :func:`search_sun` found (None: no search, or no direction fits)"""
+    """where no direction holds a peak: the light source the background sees (:func:`sky_sun`) if one was given,
+    else the direction :func:`search_sun` found (None: a peak, no search, or no direction fits)"""
 
 
 PEAK_FRACTION = 0.05
@@ -187,7 +188,8 @@ class SGInit:
     sharpness: Float[Tensor, " K"]
     amplitude: Float[Tensor, "K 3"]
     sun_lobe: int | None = None
-    """the lobe on the searched sun, started wide, to be sharpened when the warm-up ends (:func:`sharpen_lobe`)"""
+    """the lobe on the estimate's ``sun`` (seen or searched), started wide, to be sharpened when the warm-up ends
+    (:func:`sharpen_lobe`)"""
 
 
 def sg_from_light(est: LightEstimate, num_lobes: int, albedo: float = 0.5, num_sharp: int = 8,

@@ -63,17 +63,20 @@ def describe_geometry(source: GeometrySource, geometry: Geometry, cfg: FitConfig
     return what
 
 
+def shading_start(cfg: FitConfig) -> bool:
+    """Whether the fit's light starts from the pixels' shading (:func:`initialise_light`)."""
+    return cfg.light.kind == "sg" and cfg.light.init == "shading"
+
+
 def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg: FitConfig,
-                     metered: Tensor | None = None, seen_sun: Tensor | None = None) -> SGInit | None:
-    """The SG lobes from the pixels' diffuse shading and shadows (``light.init = shading``), as set in
-    ``model``; None when the config asks for no such start. With per-view gains (``exposure = per_view``) and the
+                     metered: Tensor | None = None, seen_sun: Tensor | None = None) -> SGInit:
+    """The SG lobes from the pixels' diffuse shading and shadows, as set in ``model``, for a config whose light
+    starts there (:func:`shading_start`). With per-view gains (``exposure = per_view``) and the
     views' EXIF exposures ``metered`` (V,), the colours are read with the gains' start divided out, as the fit
     will render them: a view shot a stop brighter is not a brighter sky where it looks (on leaning's phone
     capture the searched sun 17 -> 10 degrees from the truth; docs/experiments.md, 2026-11-29). ``seen_sun``: a
     light source the background sees (:func:`nefii.fit.light_init.sky_sun`), used where the shading shows no
     peak."""
-    if cfg.light.kind != "sg" or cfg.light.init != "shading":
-        return None
     pts, rgb = pixels.points, pixels.rgb
     if metered is not None and cfg.exposure == "per_view":
         rgb = without_gains(rgb, pixels.view, metered_log_gains(metered))
@@ -134,11 +137,11 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
             say(f"the photos' EXIF exposures are {span:.1f} stops apart: --set exposure=per_view learns a gain "
                 "per photo")
     model = build_model(cfg, box, features)
-    sun_lobe, seen_sun = None, None
-    if checkpoint is None and (bg := background_clipping(scene, geometry)) is not None:
-        seen_sun = sky_sun(*bg)
-    if checkpoint is None and (init := initialise_light(model, pixels, geometry, cfg, scene.exposure,
-                                                        seen_sun)) is not None:
+    sun_lobe = None
+    if checkpoint is None and shading_start(cfg):      # the sky's clipping is read only for the start that uses it
+        bg = background_clipping(scene, geometry)
+        seen_sun = None if bg is None else sky_sun(*bg)
+        init = initialise_light(model, pixels, geometry, cfg, scene.exposure, seen_sun)
         sun_lobe = init.sun_lobe
         n_sharp = int((init.sharpness == cfg.light.sharpness_init_peak).sum())
         if n_sharp:
