@@ -34,11 +34,14 @@ def machine() -> str:
 
 
 def scene(name: str, res: int = 128, views: int = 64, test_views: int = 8, spp: int = 64) -> Path:
-    """A built-in scene, synthesised once into ``benchmarks/.cache`` (Mitsuba needed the first time)."""
+    """A built-in scene, synthesised once into ``benchmarks/.cache`` (Mitsuba needed the first time);
+    ``OBJECT@ENV`` is the scene's object under another built-in environment (``nefii synth --env``)."""
     out = CACHE / f"{name}_{res}_{views}_{test_views}_{spp}"
     if not (out / "transforms_train.json").exists():
-        subprocess.run([sys.executable, "-m", "nefii.cli.main", "synth", name, "--out", str(out), "--res", str(res),
-                        "--views", str(views), "--test-views", str(test_views), "--spp", str(spp)], check=True)
+        obj, _, env = name.partition("@")
+        subprocess.run([sys.executable, "-m", "nefii.cli.main", "synth", obj, "--out", str(out), "--res", str(res),
+                        "--views", str(views), "--test-views", str(test_views), "--spp", str(spp),
+                        *(["--env", env] if env else [])], check=True)
     else:
         from nefii.synth.generate import synth_versions  # noqa: PLC0415
 

@@ -17,7 +17,7 @@ from nefii.cli.main import main
 from nefii.io.exr import read_exr
 from nefii.synth import scenes
 from nefii.synth.envmaps import bake_equirect, sample_equirect, sun_directions
-from nefii.synth.skies import get_environment
+from nefii.synth.skies import ENVIRONMENTS, get_environment
 from nefii.synth.generate import synth_versions
 
 mitsuba = pytest.importorskip("mitsuba")
@@ -74,6 +74,7 @@ def test_list_names_every_scene_one_line_each(capsys):
     ([SMALL, "--res", "-5"], "--res must be between"),
     ([SMALL, "--views", "0"], "--views must be between"),
     ([SMALL, "--spp", "0"], "--spp must be between"),
+    ([SMALL, "--env", "moon"], "unknown environment 'moon'"),
     ([], "name a SCENE"),
 ])
 def test_bad_input_is_one_line_exit_2_and_writes_nothing(args, needle, tmp_path, monkeypatch, capsys):
@@ -242,6 +243,39 @@ def test_the_dataset_loader_reads_it_back(small_run):
     assert np.allclose(scene.cameras.c2w.numpy(), np.stack(poses) @ OPENGL_TO_OPENCV.numpy())
     assert scene.ground_truth is not None and scene.ground_truth.albedo is not None
     assert scene.envmap is not None and len(scene.relit) == 2
+
+
+def test_lit_by_swaps_the_light_and_keeps_the_other_two_for_relighting():
+    from nefii.synth.generate import lit_by
+
+    spec = scenes.SCENES[SMALL]
+    assert lit_by(spec, "") is spec and lit_by(spec, spec.environment) is spec
+    for name in ENVIRONMENTS:
+        if name == spec.environment:
+            continue
+        lit = lit_by(spec, name)
+        assert lit.environment == name and name not in lit.relight and len(set(lit.relight)) == 2
+        assert set(lit.relight) <= set(ENVIRONMENTS) and lit.parts is spec.parts
+        if name in spec.relight:
+            assert spec.environment in lit.relight
+        else:
+            assert lit.relight == spec.relight
+
+
+def test_env_lights_the_same_views_by_another_environment(tmp_path):
+    from nefii.synth.generate import _baked
+
+    own = scenes.SCENES[SMALL].environment
+    other = next(n for n in ENVIRONMENTS if n != own)
+    assert run_synth(tmp_path / "own", SMALL, TINY) == 0
+    assert run_synth(tmp_path / "other", SMALL, [*TINY, "--env", other]) == 0
+    record = json.loads((tmp_path / "other" / "scene.json").read_text())
+    assert record["environment"]["name"] == other and record["settings"]["environment"] == other
+    assert other not in [r["name"] for r in record["relight"]]
+    assert np.array_equal(read_exr(tmp_path / "other" / "envmap.exr"), _baked(other, 32)[0])
+    a, b = (read_exr(tmp_path / d / "train" / "r_0.exr") for d in ("own", "other"))
+    assert np.array_equal(a[..., 3], b[..., 3])                      # the same object and camera
+    assert np.abs(a[..., :3] - b[..., :3]).mean() > 0.05 * a[..., :3].mean()   # under another light
 
 
 @pytest.mark.parametrize("name", [n for n in scenes.scene_names() if n != SMALL])

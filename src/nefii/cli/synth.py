@@ -29,6 +29,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--test-views", type=int, default=20, help="test views, with ground-truth maps (default 20)")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel (default 256; no clamping)")
     p.add_argument("--seed", type=int, default=0, help="seeds camera placement and sampling (default 0)")
+    p.add_argument("--env", default="", metavar="NAME",
+                   help="light the scene by another built-in environment (noon, sunset, overcast, studio) instead "
+                        "of its own: the same object, views and materials under another light")
     p.add_argument("--env-height", type=int, default=1024,
                    help="rows of envmap.exr and relight maps, columns twice that (default 1024)")
     p.add_argument("--photo", action="store_true",
@@ -65,13 +68,14 @@ def run(args: argparse.Namespace) -> int:
     from ..synth.generate import SynthSettings, synthesize
 
     settings = SynthSettings(scene=args.scene, res=args.res, views=args.views, test_views=args.test_views,
-                             spp=args.spp, seed=args.seed, env_height=args.env_height)
+                             spp=args.spp, seed=args.seed, env_height=args.env_height, environment=args.env)
     settings.validate()
     out = args.out if args.out is not None else Path("scenes") / args.scene
     t0 = time.time()
     clean = out / "clean" if args.photo else out
     synthesize(settings, clean)
-    print(f"nefii synth: wrote {clean} ({settings.views} train + {settings.test_views} test views, "
+    lit = f", lit by {args.env}" if args.env else ""
+    print(f"nefii synth: wrote {clean} ({settings.views} train + {settings.test_views} test views{lit}, "
           f"{settings.res}x{settings.res}, {settings.spp} spp) in {time.time() - t0:.0f} s")
     if args.photo:
         from ..synth.photo import PhotoSettings, make_photos

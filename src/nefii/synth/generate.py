@@ -10,6 +10,7 @@ import hashlib
 import importlib.metadata as md
 import platform
 import sys
+import dataclasses
 import time
 from dataclasses import asdict, dataclass, field
 from functools import lru_cache
@@ -26,8 +27,8 @@ from .envmaps import bake_equirect
 from .meshes import write_ply
 from .textures import write_material
 from .mitsuba_backend import MitsubaRenderer, bake_for_mitsuba, import_mitsuba, select_variant
-from .scenes import SCENES, build_scene
-from .skies import get_environment
+from .scenes import SCENES, SceneSpec, build_scene
+from .skies import ENVIRONMENTS, get_environment
 from .textures import ALBEDO_RANGE, ROUGHNESS_RANGE
 
 FORMAT = "nefii-synth/1"
@@ -51,6 +52,8 @@ class SynthSettings:
     """seeds the camera spiral's azimuth and every render's sampler (not geometry or materials)"""
     env_height: int = 1024
     """height of envmap.exr and relight/*.exr (width is twice); Mitsuba's grid has one row more"""
+    environment: str = ""
+    """the built-in environment the training and test views are lit by ("": the scene's own)"""
     fov_x_deg: float = 40.0
     """horizontal field of view"""
     max_depth: int = 12
@@ -60,6 +63,9 @@ class SynthSettings:
         """Raise :class:`InputError` naming the first bad setting."""
         if self.scene not in SCENES:
             raise InputError(None, f"unknown scene {self.scene!r}; built-in scenes: {', '.join(SCENES)}")
+        if self.environment and self.environment not in ENVIRONMENTS:
+            raise InputError(None, f"unknown environment {self.environment!r}; built-in environments: "
+                                   f"{', '.join(ENVIRONMENTS)}")
         for name, value, lo, hi in (("--res", self.res, 8, 8192), ("--views", self.views, 1, 100_000),
                                     ("--test-views", self.test_views, 1, 100_000), ("--spp", self.spp, 1, 1 << 20),
                                     ("--seed", self.seed, 0, (1 << 31) - 1), ("--env-height", self.env_height, 8, 16384)):
@@ -79,6 +85,15 @@ def _baked(env_name: str, height: int) -> tuple[np.ndarray, np.ndarray]:
     """(nefii equirect map, Mitsuba's grid) of an environment; cached, as scenes share them."""
     env = get_environment(env_name)
     return bake_equirect(env, height, 2 * height), bake_for_mitsuba(env, height + 1, 2 * height)
+
+
+def lit_by(spec: SceneSpec, environment: str) -> SceneSpec:
+    """The scene under another built-in ``environment`` ("": as it is). Its relighting pair keeps the scene's
+    other environments, with the scene's own taking the place of the new one if that was among them."""
+    if not environment or environment == spec.environment:
+        return spec
+    relight = tuple(spec.environment if name == environment else name for name in spec.relight)
+    return dataclasses.replace(spec, environment=environment, relight=relight)
 
 
 def render_seed(seed: int, split: str, index: int, kind: str) -> int:
@@ -103,7 +118,7 @@ def synthesize(settings: SynthSettings, out: str | Path, *, progress: bool = Tru
     import_mitsuba()  # fail early, before minutes of baking, if Mitsuba is missing
     stats, t0 = _Stats(), time.time()
     scene = build_scene(settings.scene)
-    spec = scene.spec
+    spec = lit_by(scene.spec, settings.environment)
     env_names = (spec.environment, *spec.relight)
     maps = {name: _baked(name, settings.env_height) for name in env_names}
     rig = cameras.make_rig(settings.views, settings.test_views, settings.res, scene.radius, spec.elevation_deg,
@@ -125,7 +140,7 @@ def synthesize(settings: SynthSettings, out: str | Path, *, progress: bool = Tru
         stats.seconds["render"] = time.time() - t1
         layout.write_json(tmp / "transforms_train.json", cameras.transforms_json(rig, rig.train, "train"))
         layout.write_json(tmp / "transforms_test.json", cameras.transforms_json(rig, rig.test, "test"))
-        layout.write_json(tmp / "scene.json", scene_record(settings, scene, rig, renderer, maps, stats))
+        layout.write_json(tmp / "scene.json", scene_record(settings, scene, spec, rig, renderer, maps, stats))
     return out
 
 
@@ -181,9 +196,10 @@ def _env_record(name: str, image: np.ndarray, file: str) -> dict:
             "height": image.shape[0], "width": image.shape[1], "sun": sun}
 
 
-def scene_record(settings: SynthSettings, scene, rig, renderer: MitsubaRenderer, maps: dict, stats: _Stats) -> dict:
-    """The content of ``scene.json``."""
-    spec, atlas = scene.spec, scene.atlas
+def scene_record(settings: SynthSettings, scene, spec: SceneSpec, rig, renderer: MitsubaRenderer, maps: dict,
+                 stats: _Stats) -> dict:
+    """The content of ``scene.json`` (``spec``: the scene as lit, :func:`lit_by`)."""
+    atlas = scene.atlas
     gap = stats.layer_gap
     return {
         "format": FORMAT,
