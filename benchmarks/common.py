@@ -73,6 +73,33 @@ def set_flags(overrides: list[str], threads: int) -> list[str]:
     return [x for kv in [*overrides, f"threads={threads}"] for x in ("--set", kv)]
 
 
+def fit_and_eval(data: Path, run: Path, sets: list[str], eval_spp: int, what: str, extra: list[str] = ()) -> None:
+    """``nefii fit DATA --out RUN`` (resumed from its checkpoints if any; skipped if ``RUN/model.pt`` exists) with
+    the ``--set`` arguments ``sets``, then ``nefii eval RUN``; ``RUN/benchmark.json`` records the code and the
+    ``extra`` overrides. A failed fit raises naming ``what`` with the end of its stderr."""
+    if not (run / "model.pt").exists():
+        (run / "benchmark.json").unlink(missing_ok=True)
+        resume = ["--resume"] if (run / "checkpoints").exists() else []
+        cmd = [sys.executable, "-m", "nefii.cli.main", "fit", str(data), "--out", str(run), "--quiet", *resume, *sets]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"fit {what} failed:\n{proc.stderr[-3000:]}")
+        (run / "benchmark.json").write_text(json.dumps({"code": code_version(), "extra": list(extra)}) + "\n")
+    subprocess.run([sys.executable, "-m", "nefii.cli.main", "eval", str(run), "--spp", str(eval_spp), "--quiet"],
+                   check=True, capture_output=True)
+
+
+def fit_arguments(ap) -> None:
+    """The scene size, eval and job options that the fit-and-score benchmarks share."""
+    ap.add_argument("--res", type=int, default=128)
+    ap.add_argument("--views", type=int, default=64)
+    ap.add_argument("--test-views", type=int, default=8)
+    ap.add_argument("--eval-spp", type=int, default=64)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=None, help="threads per fit (default: 1 with --jobs > 1, else all)")
+    ap.add_argument("--set", dest="extra", action="append", default=[])
+
+
 def note_lines(note: str) -> list[str]:
     """A results file's hand-written paragraph: ``note`` (``@FILE``: FILE's text) and a blank line; none if empty."""
     text = Path(note[1:]).read_text().strip() if note.startswith("@") else note.strip()

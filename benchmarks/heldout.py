@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import CACHE, code_version, fit_threads, machine, note_lines, scene, set_flags, stamp, write_results
+from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_threads, machine, note_lines, scene, set_flags,
+                     stamp, write_results)
 
 SWAPS = ("bowl@studio", "leaning@overcast", "cup@noon", "corner@sunset")
 """each object under a light of another scene: hard sun on the soft-lit objects, soft light on the sunlit ones"""
@@ -32,18 +31,8 @@ def run_dir(name: str, seed: int) -> Path:
 def run_one(data: Path, name: str, seed: int, extra: list[str], threads: int, eval_spp: int) -> None:
     """``nefii fit`` then ``nefii eval`` of one scene at one seed, unless done."""
     run = run_dir(name, seed)
-    if (run / "eval" / "metrics.json").exists():
-        return
-    if not (run / "model.pt").exists():
-        resume = ["--resume"] if (run / "checkpoints").exists() else []
-        cmd = [sys.executable, "-m", "nefii.cli.main", "fit", str(data), "--out", str(run), "--quiet", *resume,
-               *set_flags([f"seed={seed}", *extra], threads)]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise RuntimeError(f"fit {name} seed {seed} failed:\n{proc.stderr[-3000:]}")
-        (run / "benchmark.json").write_text(json.dumps({"code": code_version(), "extra": extra}) + "\n")
-    subprocess.run([sys.executable, "-m", "nefii.cli.main", "eval", str(run), "--spp", str(eval_spp), "--quiet"],
-                   check=True, capture_output=True)
+    if not (run / "eval" / "metrics.json").exists():
+        fit_and_eval(data, run, set_flags([f"seed={seed}", *extra], threads), eval_spp, f"{name} seed {seed}", extra)
 
 
 def read_run(name: str, seed: int) -> dict | None:
@@ -82,13 +71,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=list(SWAPS), help="OBJECT@ENV (default: %(default)s)")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
-    ap.add_argument("--res", type=int, default=128)
-    ap.add_argument("--views", type=int, default=64)
-    ap.add_argument("--test-views", type=int, default=8)
-    ap.add_argument("--eval-spp", type=int, default=64)
-    ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--threads", type=int, default=None, help="threads per fit (default: 1 with --jobs > 1, else all)")
-    ap.add_argument("--set", dest="extra", action="append", default=[])
+    fit_arguments(ap)
     ap.add_argument("--note", default="", help="a paragraph printed under the machine line (how the rows were "
                     "made, when that is not this invocation); @FILE reads it from FILE")
     args = ap.parse_args()

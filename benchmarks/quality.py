@@ -20,7 +20,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import CACHE, code_version, fit_threads, machine, note_lines, scene, set_flags, stamp, write_results
+from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_threads, machine, note_lines, scene, set_flags,
+                     stamp, write_results)
 
 CONFIGS = {
     "full": [],
@@ -45,20 +46,9 @@ def run_dir(name: str, config: str) -> Path:
 
 def run_one(data: Path, name: str, config: str, extra: list[str], threads: int, eval_spp: int) -> None:
     run = run_dir(name, config)
-    metrics = run / "eval" / "metrics.json"
-    if not metrics.exists():
-        if not (run / "model.pt").exists():
-            (run / "benchmark.json").unlink(missing_ok=True)
-            switches = {**CONFIGS, **BASELINES}[config]
-            sets = set_flags([*switches, *extra], threads)
-            resume = ["--resume"] if (run / "checkpoints").exists() else []
-            cmd = [sys.executable, "-m", "nefii.cli.main", "fit", str(data), "--out", str(run), "--quiet", *resume, *sets]
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            if proc.returncode != 0:
-                raise RuntimeError(f"fit {name}/{config} failed:\n{proc.stderr[-3000:]}")
-            (run / "benchmark.json").write_text(json.dumps({"code": code_version(), "extra": extra}) + "\n")
-        subprocess.run([sys.executable, "-m", "nefii.cli.main", "eval", str(run), "--spp", str(eval_spp), "--quiet"],
-                       check=True, capture_output=True)
+    if not (run / "eval" / "metrics.json").exists():
+        switches = {**CONFIGS, **BASELINES}[config]
+        fit_and_eval(data, run, set_flags([*switches, *extra], threads), eval_spp, f"{name}/{config}", extra)
 
 
 def relight_one(data: Path, name: str, spp: int) -> None:
@@ -120,13 +110,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--scenes", nargs="+", default=list(SCENES))
     ap.add_argument("--configs", nargs="+", default=list(CONFIGS))
-    ap.add_argument("--res", type=int, default=128)
-    ap.add_argument("--views", type=int, default=64)
-    ap.add_argument("--test-views", type=int, default=8)
-    ap.add_argument("--eval-spp", type=int, default=64)
-    ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--threads", type=int, default=None, help="threads per fit (default: 1 with --jobs > 1, else all)")
-    ap.add_argument("--set", dest="extra", action="append", default=[])
+    fit_arguments(ap)
     ap.add_argument("--relight-spp", type=int, default=256,
                     help="paths per pixel of the relighting, default `nefii relight`'s own (0: skip it)")
     ap.add_argument("--note", default="", help="a paragraph printed under the machine line of quality.md and "
