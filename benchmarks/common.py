@@ -75,8 +75,11 @@ def set_flags(overrides: list[str], threads: int) -> list[str]:
 
 def fit_and_eval(data: Path, run: Path, sets: list[str], eval_spp: int, what: str, extra: list[str] = ()) -> None:
     """``nefii fit DATA --out RUN`` (resumed from its checkpoints if any; skipped if ``RUN/model.pt`` exists) with
-    the ``--set`` arguments ``sets``, then ``nefii eval RUN``; ``RUN/benchmark.json`` records the code and the
-    ``extra`` overrides. A failed fit raises naming ``what`` with the end of its stderr."""
+    the ``--set`` arguments ``sets``, then ``nefii eval RUN``; nothing if ``RUN`` is already evaluated.
+    ``RUN/benchmark.json`` records the code and the ``extra`` overrides. A failed fit raises naming ``what`` with
+    the end of its stderr."""
+    if (run / "eval" / "metrics.json").exists():
+        return
     if not (run / "model.pt").exists():
         (run / "benchmark.json").unlink(missing_ok=True)
         resume = ["--resume"] if (run / "checkpoints").exists() else []
@@ -87,6 +90,29 @@ def fit_and_eval(data: Path, run: Path, sets: list[str], eval_spp: int, what: st
         (run / "benchmark.json").write_text(json.dumps({"code": code_version(), "extra": list(extra)}) + "\n")
     subprocess.run([sys.executable, "-m", "nefii.cli.main", "eval", str(run), "--spp", str(eval_spp), "--quiet"],
                    check=True, capture_output=True)
+
+
+def all_steps_wall_min(stats: dict) -> tuple[float, bool]:
+    """Minutes for all of a run's steps, and whether it was resumed: a resumed run's stats time only its last
+    session, which is scaled to all its steps (and marked)."""
+    done = stats.get("steps_this_session", stats["steps"])
+    wall = stats.get("wall_s_this_session", stats.get("wall_s")) * stats["steps"] / max(done, 1)
+    return wall / 60, done < stats["steps"]
+
+
+def run_figures(run: Path) -> dict | None:
+    """An evaluated fit's figures, or None if ``run`` is not evaluated: the masked metrics, ``whole`` (the
+    whole-image ones), ``fit_s`` (all its steps, :func:`all_steps_wall_min`), ``resumed``, ``peak_gib``,
+    ``threads`` and ``code`` (from ``benchmark.json``, ``unknown`` without one)."""
+    if not (run / "eval" / "metrics.json").exists():
+        return None
+    m = json.loads((run / "eval" / "metrics.json").read_text())
+    stats = json.loads((run / "fit_stats.json").read_text())
+    bench = json.loads((run / "benchmark.json").read_text()) if (run / "benchmark.json").exists() else {}
+    wall_min, resumed = all_steps_wall_min(stats)
+    return {"fit_s": wall_min * 60, "resumed": resumed, "peak_gib": stats["peak_rss_gib"],
+            "threads": stats.get("threads"), "code": bench.get("code", "unknown"), **m["masked"],
+            "whole": m["whole_image"]}
 
 
 def fit_arguments(ap) -> None:

@@ -36,7 +36,7 @@ from nefii.fit.outputs import load_run
 from nefii.raycast import MeshGeometry, Rays
 from nefii.sdf.metrics import mesh_distance
 
-from .common import CACHE, code_version, machine, scene, set_flags, stamp, write_results
+from .common import CACHE, all_steps_wall_min, code_version, machine, scene, set_flags, stamp, write_results
 from .quality import run_dir, run_one
 
 
@@ -60,14 +60,6 @@ def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[st
             "normal_median": d.normal_median_covered_deg, "wall_min": wall_min, "resumed": resumed,
             "peak_gib": stats["peak_rss_gib"],
             "folder": out, "code": code_version()}
-
-
-def all_steps_wall_min(stats: dict) -> tuple[float, bool]:
-    """Minutes for all of a run's steps, and whether it was resumed: a resumed run's stats time only its last
-    session, which is scaled to all its steps (and marked)."""
-    done = stats.get("steps_this_session", stats["steps"])
-    wall = stats.get("wall_s_this_session", stats.get("wall_s")) * stats["steps"] / max(done, 1)
-    return wall / 60, done < stats["steps"]
 
 
 def fit_on(data: Path, geo: Path, threads: int, sets: list[str], tag: str) -> dict:

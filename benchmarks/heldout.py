@@ -12,13 +12,12 @@ run, the seeds' means, and issue 27's albedo and roughness targets against the m
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_threads, machine, note_lines, scene, set_flags,
-                     stamp, write_results)
+from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_threads, machine, note_lines, run_figures, scene,
+                     set_flags, stamp, write_results)
 
 SWAPS = ("bowl@studio", "leaning@overcast", "cup@noon", "corner@sunset")
 """each object under a light of another scene: hard sun on the soft-lit objects, soft light on the sunlit ones"""
@@ -30,20 +29,8 @@ def run_dir(name: str, seed: int) -> Path:
 
 def run_one(data: Path, name: str, seed: int, extra: list[str], threads: int, eval_spp: int) -> None:
     """``nefii fit`` then ``nefii eval`` of one scene at one seed, unless done."""
-    run = run_dir(name, seed)
-    if not (run / "eval" / "metrics.json").exists():
-        fit_and_eval(data, run, set_flags([f"seed={seed}", *extra], threads), eval_spp, f"{name} seed {seed}", extra)
-
-
-def read_run(name: str, seed: int) -> dict | None:
-    run = run_dir(name, seed)
-    if not (run / "eval" / "metrics.json").exists():
-        return None
-    masked = json.loads((run / "eval" / "metrics.json").read_text())["masked"]
-    stats = json.loads((run / "fit_stats.json").read_text())
-    bench = json.loads((run / "benchmark.json").read_text()) if (run / "benchmark.json").exists() else {}
-    return {**masked, "fit_min": stats["wall_s_this_session"] / 60, "threads": stats.get("threads"),
-            "code": bench.get("code", "unknown")}
+    fit_and_eval(data, run_dir(name, seed), set_flags([f"seed={seed}", *extra], threads), eval_spp,
+                 f"{name} seed {seed}", extra)
 
 
 def table(names: list[str], seeds: list[int]) -> list[str]:
@@ -52,11 +39,11 @@ def table(names: list[str], seeds: list[int]) -> list[str]:
             "|---|---|---|---|---|---|---|---|---|"]
     means = ["| scene | seeds | albedo PSNR | roughness MSE | albedo >= 26 dB | roughness <= 0.02 |", "|---|---|---|---|---|---|"]
     for name in names:
-        runs = {s: read_run(name, s) for s in seeds}
+        runs = {s: run_figures(run_dir(name, s)) for s in seeds}
         for s, r in runs.items():
             if r is not None:
                 rows.append(f"| {name} | {s} | {r['albedo_psnr']:.2f} | {r['roughness_mse']:.4f} | "
-                            f"{r['specular_psnr']:.2f} | {r['rgb_psnr']:.2f} | {r['fit_min']:.1f} | {r['threads']} | "
+                            f"{r['specular_psnr']:.2f} | {r['rgb_psnr']:.2f} | {r['fit_s'] / 60:.1f}{'*' if r['resumed'] else ''} | {r['threads']} | "
                             f"{r['code']} |")
         done = [r for r in runs.values() if r is not None]
         if done:

@@ -20,8 +20,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_threads, machine, note_lines, scene, set_flags,
-                     stamp, write_results)
+from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_threads, machine, note_lines, run_figures, scene,
+                     set_flags, stamp, write_results)
 
 CONFIGS = {
     "full": [],
@@ -45,10 +45,9 @@ def run_dir(name: str, config: str) -> Path:
 
 
 def run_one(data: Path, name: str, config: str, extra: list[str], threads: int, eval_spp: int) -> None:
-    run = run_dir(name, config)
-    if not (run / "eval" / "metrics.json").exists():
-        switches = {**CONFIGS, **BASELINES}[config]
-        fit_and_eval(data, run, set_flags([*switches, *extra], threads), eval_spp, f"{name}/{config}", extra)
+    switches = {**CONFIGS, **BASELINES}[config]
+    fit_and_eval(data, run_dir(name, config), set_flags([*switches, *extra], threads), eval_spp, f"{name}/{config}",
+                 extra)
 
 
 def relight_one(data: Path, name: str, spp: int) -> None:
@@ -73,19 +72,9 @@ def relight_rows(name: str) -> list[str]:
 
 
 def read_row(name: str, config: str) -> dict | None:
-    """The completed run's figures, or None."""
-    run = run_dir(name, config)
-    if not (run / "eval" / "metrics.json").exists():
-        return None
-    m = json.loads((run / "eval" / "metrics.json").read_text())
-    stats = json.loads((run / "fit_stats.json").read_text())
-    bench = json.loads((run / "benchmark.json").read_text()) if (run / "benchmark.json").exists() else {}
-    # a resumed fit only timed its last session: scale that session's rate to the whole fit
-    done, total = stats.get("steps_this_session", stats["steps"]), stats["steps"]
-    fit_s = stats["wall_s_this_session"] * total / max(done, 1)
-    return {"scene": name, "config": config, "fit_s": fit_s, "resumed": done < total, "peak_gib": stats["peak_rss_gib"],
-            "threads": stats.get("threads"), "code": bench.get("code", "unknown"), **m["masked"],
-            "whole": m["whole_image"]}
+    """The completed run's figures (:func:`run_figures`), or None."""
+    figures = run_figures(run_dir(name, config))
+    return None if figures is None else {"scene": name, "config": config, **figures}
 
 
 def target_lines(rows: list[dict]) -> list[str]:

@@ -10,8 +10,10 @@ def fake_run(name: str, seed: int, albedo: float, rough: float) -> None:
     run = heldout.run_dir(name, seed)
     (run / "eval").mkdir(parents=True)
     (run / "eval" / "metrics.json").write_text(json.dumps({"masked": {
-        "albedo_psnr": albedo, "roughness_mse": rough, "specular_psnr": 20.0, "rgb_psnr": 25.0}}))
-    (run / "fit_stats.json").write_text(json.dumps({"wall_s_this_session": 300.0, "threads": 1}))
+        "albedo_psnr": albedo, "roughness_mse": rough, "specular_psnr": 20.0, "rgb_psnr": 25.0},
+        "whole_image": {"rgb_psnr": 26.0}}))
+    (run / "fit_stats.json").write_text(json.dumps({"steps": 3000, "wall_s_this_session": 300.0, "threads": 1,
+                                                    "peak_rss_gib": 0.8}))
 
 
 def test_table_means_the_seeds_and_judges_the_means(tmp_path, monkeypatch):

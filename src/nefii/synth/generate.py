@@ -10,9 +10,8 @@ import hashlib
 import importlib.metadata as md
 import platform
 import sys
-import dataclasses
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -93,7 +92,7 @@ def lit_by(spec: SceneSpec, environment: str) -> SceneSpec:
     if not environment or environment == spec.environment:
         return spec
     relight = tuple(spec.environment if name == environment else name for name in spec.relight)
-    return dataclasses.replace(spec, environment=environment, relight=relight)
+    return replace(spec, environment=environment, relight=relight)
 
 
 def render_seed(seed: int, split: str, index: int, kind: str) -> int:
