@@ -23,7 +23,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", nargs="?", metavar="SCENE", help="built-in scene name (see --list)")
     p.add_argument("--list", action="store_true", help="list the built-in scenes, one line each, and exit")
-    p.add_argument("--out", type=Path, default=None, help="output folder (default: scenes/SCENE)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: scenes/SCENE, or scenes/SCENE@ENV with --env)")
     p.add_argument("--res", type=int, default=256, help="image width and height in pixels (default 256)")
     p.add_argument("--views", type=int, default=100, help="training views (default 100)")
     p.add_argument("--test-views", type=int, default=20, help="test views, with ground-truth maps (default 20)")
@@ -70,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
     settings = SynthSettings(scene=args.scene, res=args.res, views=args.views, test_views=args.test_views,
                              spp=args.spp, seed=args.seed, env_height=args.env_height, environment=args.env)
     settings.validate()
-    out = args.out if args.out is not None else Path("scenes") / args.scene
+    default_name = f"{args.scene}@{args.env}" if args.env else args.scene
+    out = args.out if args.out is not None else Path("scenes") / default_name
     t0 = time.time()
     clean = out / "clean" if args.photo else out
     synthesize(settings, clean)
