@@ -36,7 +36,8 @@ from nefii.fit.outputs import load_run
 from nefii.raycast import MeshGeometry, Rays
 from nefii.sdf.metrics import mesh_distance
 
-from .common import CACHE, all_steps_wall_min, code_version, machine, scene, set_flags, stamp, write_results
+from .common import (CACHE, all_steps_wall_min, code_version, fit_and_eval, machine, scene, set_flags, stamp,
+                     write_results)
 from .quality import run_dir, run_one
 
 
@@ -66,12 +67,7 @@ def fit_on(data: Path, geo: Path, threads: int, sets: list[str], tag: str) -> di
     """``nefii fit --geometry geo`` (mesh mode, the ``cpu`` preset + ``sets``) on ``data``, evaluated; the
     masked metrics. The run is ``geo/fit_<data>`` (``_<tag>`` appended when given)."""
     run = geo / (f"fit_{data.name}" + (f"_{tag}" if tag else ""))
-    if not (run / "eval" / "metrics.json").exists():
-        if not (run / "model.pt").exists():
-            resume = ["--resume"] if (run / "checkpoints").exists() else []
-            extra = set_flags(sets, threads)
-            nefii("fit", str(data), "--out", str(run), "--geometry", str(geo), "--quiet", *resume, *extra)
-        nefii("eval", str(run), "--quiet", "--spp", "64")
+    fit_and_eval(data, run, ["--geometry", str(geo), *set_flags(sets, threads)], 64, f"{data.name} on {geo}", sets)
     return json.loads((run / "eval" / "metrics.json").read_text())["masked"]
 
 
