@@ -262,18 +262,21 @@ def test_lit_by_swaps_the_light_and_keeps_the_other_two_for_relighting():
             assert lit.relight == spec.relight
 
 
-def test_env_lights_the_same_views_by_another_environment(tmp_path):
+def test_env_lights_the_same_views_by_another_environment(tmp_path, monkeypatch):
+    """... into scenes/SCENE@ENV when no --out is given (the own-light scene in scenes/SCENE stays)."""
     from nefii.synth.generate import _baked
 
     own = scenes.SCENES[SMALL].environment
     other = next(n for n in ENVIRONMENTS if n != own)
     assert run_synth(tmp_path / "own", SMALL, TINY) == 0
-    assert run_synth(tmp_path / "other", SMALL, [*TINY, "--env", other]) == 0
-    record = json.loads((tmp_path / "other" / "scene.json").read_text())
+    monkeypatch.chdir(tmp_path)
+    assert main(["synth", SMALL, *TINY, "--env", other]) == 0
+    lit = tmp_path / "scenes" / f"{SMALL}@{other}"
+    record = json.loads((lit / "scene.json").read_text())
     assert record["environment"]["name"] == other and record["settings"]["environment"] == other
     assert other not in [r["name"] for r in record["relight"]]
-    assert np.array_equal(read_exr(tmp_path / "other" / "envmap.exr"), _baked(other, 32)[0])
-    a, b = (read_exr(tmp_path / d / "train" / "r_0.exr") for d in ("own", "other"))
+    assert np.array_equal(read_exr(lit / "envmap.exr"), _baked(other, 32)[0])
+    a, b = (read_exr(d / "train" / "r_0.exr") for d in (tmp_path / "own", lit))
     assert np.array_equal(a[..., 3], b[..., 3])                      # the same object and camera
     assert np.abs(a[..., :3] - b[..., :3]).mean() > 0.05 * a[..., :3].mean()   # under another light
 
