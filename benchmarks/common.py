@@ -7,6 +7,7 @@ import platform
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -73,23 +74,28 @@ def set_flags(overrides: list[str], threads: int) -> list[str]:
     return [x for kv in [*overrides, f"threads={threads}"] for x in ("--set", kv)]
 
 
-def fit_and_eval(data: Path, run: Path, sets: list[str], eval_spp: int, what: str, extra: list[str] = ()) -> None:
+def nefii(*args: str, what: str = "") -> None:
+    """``nefii ARGS`` in a subprocess, its output captured; a failure raises naming ``what`` (default: the command)
+    with the end of its stderr."""
+    proc = subprocess.run([sys.executable, "-m", "nefii.cli.main", *args], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{what or 'nefii ' + ' '.join(args)} failed:\n{proc.stderr[-3000:]}")
+
+
+def fit_and_eval(data: Path, run: Path, sets: list[str], eval_spp: int, what: str, extra: Sequence[str] = (),
+                 eval_args: Sequence[str] = ()) -> None:
     """``nefii fit DATA --out RUN`` (resumed from its checkpoints if any; skipped if ``RUN/model.pt`` exists) with
-    the ``--set`` arguments ``sets``, then ``nefii eval RUN``; nothing if ``RUN`` is already evaluated.
-    ``RUN/benchmark.json`` records the code and the ``extra`` overrides. A failed fit raises naming ``what`` with
-    the end of its stderr."""
+    the arguments ``sets`` (``--set``s, ``--mesh`` or ``--geometry``), then ``nefii eval RUN`` with ``eval_args``
+    (e.g. ``--data CLEAN``); nothing if ``RUN`` is already evaluated. ``RUN/benchmark.json`` records the code and
+    the ``extra`` overrides. A failed fit or eval raises naming ``what`` with the end of its stderr."""
     if (run / "eval" / "metrics.json").exists():
         return
     if not (run / "model.pt").exists():
         (run / "benchmark.json").unlink(missing_ok=True)
         resume = ["--resume"] if (run / "checkpoints").exists() else []
-        cmd = [sys.executable, "-m", "nefii.cli.main", "fit", str(data), "--out", str(run), "--quiet", *resume, *sets]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise RuntimeError(f"fit {what} failed:\n{proc.stderr[-3000:]}")
+        nefii("fit", str(data), "--out", str(run), "--quiet", *resume, *sets, what=f"fit {what}")
         (run / "benchmark.json").write_text(json.dumps({"code": code_version(), "extra": list(extra)}) + "\n")
-    subprocess.run([sys.executable, "-m", "nefii.cli.main", "eval", str(run), "--spp", str(eval_spp), "--quiet"],
-                   check=True, capture_output=True)
+    nefii("eval", str(run), *eval_args, "--spp", str(eval_spp), "--quiet", what=f"eval {what}")
 
 
 def all_steps_wall_min(stats: dict) -> tuple[float, bool]:

@@ -18,8 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -36,15 +34,9 @@ from nefii.fit.outputs import load_run
 from nefii.raycast import MeshGeometry, Rays
 from nefii.sdf.metrics import mesh_distance
 
-from .common import (CACHE, all_steps_wall_min, code_version, fit_and_eval, machine, scene, set_flags, stamp,
+from .common import (CACHE, all_steps_wall_min, code_version, fit_and_eval, machine, nefii, scene, set_flags, stamp,
                      write_results)
 from .quality import run_dir, run_one
-
-
-def nefii(*args: str) -> None:
-    proc = subprocess.run([sys.executable, "-m", "nefii.cli.main", *args], capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise RuntimeError(f"nefii {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
 
 
 def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[str]) -> dict:

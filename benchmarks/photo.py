@@ -25,12 +25,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import CACHE, code_version, fit_threads, machine, scene, set_flags, stamp, write_results
+from .common import (CACHE, code_version, fit_and_eval, fit_threads, machine, nefii, scene, set_flags, stamp,
+                     write_results)
 from .quality import SCENES, run_dir
 
 CONFIGS = {
@@ -67,25 +66,16 @@ def run_one(name: str, config: str, seed: int, threads: int) -> None:
     run = photo_run(name, config, seed)
     if (run / "eval" / "metrics.json").exists():
         return
-    nefii = [sys.executable, "-m", "nefii.cli.main"]
     if config == "geometry":
         geo = CACHE / "runs" / f"photo_{name}_geo"
         if not (geo / "mesh.ply").exists():
-            subprocess.run([*nefii, "geometry", str(photo), "--out", str(geo), "--quiet",
-                            *set_flags([f"max_image_side={RES}"], threads)], check=True, capture_output=True)
+            nefii("geometry", str(photo), "--out", str(geo), "--quiet",
+                  *set_flags([f"max_image_side={RES}"], threads), what=f"geometry {name}")
         where = ["--geometry", str(geo)]
     else:
         where = ["--mesh", str(clean / "mesh.ply")]
-    if not (run / "model.pt").exists():
-        resume = ["--resume"] if (run / "checkpoints").exists() else []
-        proc = subprocess.run([*nefii, "fit", str(photo), "--out", str(run), "--quiet", *where, *resume,
-                               *set_flags([*CONFIGS[config], f"seed={seed}", f"max_image_side={RES}"], threads)],
-                              capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise RuntimeError(f"fit {name}/{config} failed:\n{proc.stderr[-3000:]}")
-        (run / "benchmark.json").write_text(json.dumps({"code": code_version()}) + "\n")
-    subprocess.run([*nefii, "eval", str(run), "--data", str(clean), "--spp", "64", "--quiet"], check=True,
-                   capture_output=True)
+    fit_and_eval(photo, run, [*where, *set_flags([*CONFIGS[config], f"seed={seed}", f"max_image_side={RES}"], threads)],
+                 64, f"{name}/{config}", eval_args=["--data", str(clean)])
 
 
 def metrics(run: Path) -> dict | None:
