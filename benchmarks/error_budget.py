@@ -47,6 +47,7 @@ from nefii.data import load_scene
 from nefii.data.material import MaterialOnMesh, load_material
 from nefii.evaluate.run import eval_mask, evaluate_run, ground_truth
 from nefii.evaluate.table1 import ViewArrays, mean_scores, view_scores
+from nefii.fields.cache import RadianceCache
 from nefii.fields.encodings import HashGrid
 from nefii.fields.mlp import mlp
 from nefii.fit.config import resolve_config
@@ -127,13 +128,14 @@ class TrueAlbedo(nn.Module):
         return Material(albedo, m.roughness, m.brdf)
 
 
-def true_environment(data: Path, device: torch.device, height: int = 256) -> Environment:
+def true_environment(data: Path, device: torch.device, height: int = 256, scale: float = 1.0) -> Environment:
     """The scene's ``envmap.exr`` averaged down to ``height`` rows (power kept; a 1-degree sun stays within a
-    pixel or two), so that drawing directions from it costs no more than from the SGs."""
+    pixel or two), so that drawing directions from it costs no more than from the SGs; times ``scale`` (a fit's
+    unit of radiance is ``1 / scale`` of the images', :mod:`nefii.fit.units`)."""
     image = load_environment(data / "envmap.exr").image
     f = max(1, image.shape[0] // height)
     H, W = image.shape[0] // f, image.shape[1] // f
-    return Environment.from_image(image[:H * f, :W * f].reshape(H, f, W, f, 3).mean((1, 3)).to(device))
+    return Environment.from_image(scale * image[:H * f, :W * f].reshape(H, f, W, f, 3).mean((1, 3)).to(device))
 
 
 class TrueEnvironment(nn.Module):
@@ -148,6 +150,9 @@ class TrueEnvironment(nn.Module):
 
     def radiance(self, w: Tensor) -> Tensor:
         return self.light.radiance(w)
+
+    def scale_radiance(self, k: float) -> None:
+        self.light = Environment.from_image(self.light.image * k)
 
     def light_sampler(self) -> Environment:
         return self.light
@@ -284,8 +289,9 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
                                       RoughnessWarmup(0).value if row == "roughness_alone" else None)
     if row == "albedo_known":
         model.material = TrueAlbedo(model.material, MaterialOnMesh(load_material(data), geometry))
+    unit = session.radiance_unit
     if row in ("drift", "roughness_alone", "light_known"):
-        model.env = TrueEnvironment(true_environment(data, device))
+        model.env = TrueEnvironment(true_environment(data, device, scale=1.0 / unit))
     if row in ("drift", "roughness_alone", "indirect_known"):
         model.cache = TracedIndirect(geometry, seed=seed)
         model.cache.bind(model)
@@ -295,6 +301,9 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
         trainer.train_step()
     fit_s = time.time() - t0
     model.eval()
+    model.env.scale_radiance(unit)                                  # back in the images' units, as nefii fit writes
+    if isinstance(model.cache, RadianceCache):                      # (traced indirect light follows the env)
+        model.cache.radiance_unit.mul_(unit)
     fitted = FittedRun(out, cfg, model, data, session.source.mesh, session.source, session.box)
     test = load_scene(data, "test")
     means = evaluate_run(fitted, test, out / "eval", eval_spp, torch.Generator(device=device).manual_seed(0))["masked"]

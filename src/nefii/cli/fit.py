@@ -109,7 +109,8 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: R
 
     def preview(step: int) -> None:
         write_preview(out / "previews" / f"step_{step:07d}.png", trainer.model, session.geometry, session.scene,
-                      view=(step // max(cfg.preview_every, 1)) % len(session.scene), transport=trainer.transport)
+                      view=(step // max(cfg.preview_every, 1)) % len(session.scene), transport=trainer.transport,
+                      radiance_unit=session.radiance_unit)
 
     try:
         trainer.fit(ckpt_dir, log=logger, progress=not args.quiet, preview=preview)
@@ -126,7 +127,8 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: R
             return 1
         say(f"nefii fit: the {ctx.world_size} process replicas are in sync (parameter sum {sums[0]:.6g})")
     if ctx.is_main:
-        write_outputs(out, cfg, trainer.model, session.box, Path(args.data).resolve(), session.source)
+        write_outputs(out, cfg, trainer.model, session.box, Path(args.data).resolve(), session.source,
+                      session.radiance_unit)
         if trainer.gains is not None:
             write_exposure(out, session.scene.names, trainer.gains.all())
         wall = time.time() - t0

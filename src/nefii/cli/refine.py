@@ -216,5 +216,6 @@ def _refit(args: argparse.Namespace, fitted: FittedRun, out: Path) -> bool:
         return False
     if not (folder / UNREFINED).is_file():
         shutil.copy2(folder / "model.pt", folder / UNREFINED)
-    write_outputs(folder, session.config, session.trainer.model, session.box, fitted.data, session.source)
+    write_outputs(folder, session.config, session.trainer.model, session.box, fitted.data, session.source,
+                  session.radiance_unit)
     return True

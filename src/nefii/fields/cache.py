@@ -16,7 +16,8 @@ from .mlp import mlp
 class RadianceCache(nn.Module):
     """Non-negative RGB radiance leaving ``x`` (normal ``n``) towards ``w_o``.
 
-    The output is ``softplus``: linear for bright values, never negative.
+    The output is ``softplus``: linear for bright values, never negative, times ``radiance_unit`` (1 while a fit
+    trains in its own unit of radiance; the unit of the images in a written model, :mod:`nefii.fit.units`).
     """
 
     def __init__(self, encoding: HashGrid | FourierFeatures, dir_freqs: int, hidden: int, layers: int,
@@ -28,6 +29,7 @@ class RadianceCache(nn.Module):
         self.net = mlp(in_dim, 3, hidden, layers)
         self.register_buffer("box_lo", torch.as_tensor(box[0], dtype=torch.float32))
         self.register_buffer("box_size", torch.as_tensor(box[1], dtype=torch.float32) - self.box_lo)
+        self.register_buffer("radiance_unit", torch.ones(()))
 
     @property
     def max_lobe_sharpness(self) -> float:
@@ -42,4 +44,8 @@ class RadianceCache(nn.Module):
         parts = [self.encoding((x - self.box_lo) / self.box_size), self.dir_encoding(n), self.dir_encoding(wo)]
         if self.features is not None:
             parts.append(self.features(x))
-        return nn.functional.softplus(self.net(torch.cat(parts, -1)))
+        return self.radiance_unit * nn.functional.softplus(self.net(torch.cat(parts, -1)))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        state_dict.setdefault(prefix + "radiance_unit", torch.ones(()))   # models written before it existed
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

@@ -43,6 +43,11 @@ class SGEnvironment(nn.Module):
         """The lobes' axes and log-sharpness (the optimiser moves them more slowly than the amplitudes)."""
         return [self.axis_raw, self.log_sharpness]
 
+    @torch.no_grad()
+    def scale_radiance(self, k: float) -> None:
+        """Every lobe's amplitude times ``k`` (> 0), in place."""
+        self.log_amplitude.add_(math.log(k))
+
     def forward(self) -> SGMixture:
         return SGMixture(axis=normalize(self.axis_raw), sharpness=self.log_sharpness.exp(),
                          amplitude=self.log_amplitude.exp())
@@ -75,6 +80,11 @@ class EnvmapEnvironment(nn.Module):
     def shape_parameters(self) -> list[nn.Parameter]:
         """None: a grid has only radiance."""
         return []
+
+    @torch.no_grad()
+    def scale_radiance(self, k: float) -> None:
+        """Every pixel's radiance times ``k`` (> 0), in place."""
+        self.log_radiance.add_(math.log(k))
 
     def image(self) -> Float[Tensor, "H W 3"]:
         return self.log_radiance.exp()

@@ -11,6 +11,7 @@ The recovered material is read back only through :func:`nefii.fit.model.decode_m
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 from dataclasses import dataclass
@@ -30,6 +31,7 @@ from .build import build_model, make_encoding
 from .config import FitConfig, config_to_dict, saved_config_from_dict
 from .geometry_source import GeometrySource
 from .model import NeFIIModel
+from .units import rescale_radiance
 
 ENVMAP_SIZE = (256, 512)
 
@@ -73,9 +75,14 @@ def read_config(folder: Path) -> FitConfig:
 
 
 def write_outputs(folder: Path, cfg: FitConfig, model: NeFIIModel, box: tuple[torch.Tensor, torch.Tensor],
-                  data: Path, source: GeometrySource) -> None:
-    """model.pt, envmap.exr, sg.npy (each written atomically). model.pt is self-contained: with an SDF's
-    feature field, the frozen SDF's weights and its configuration are in it too."""
+                  data: Path, source: GeometrySource, radiance_unit: float) -> None:
+    """model.pt, envmap.exr, sg.npy (each written atomically), in the images' units of radiance: ``model`` was
+    trained in units of ``radiance_unit`` of them (:mod:`nefii.fit.units`) and is written scaled back (a copy;
+    ``model`` is left as it is). model.pt is self-contained: with an SDF's feature field, the frozen SDF's
+    weights and its configuration are in it too."""
+    if radiance_unit != 1.0:
+        model = copy.deepcopy(model)
+        rescale_radiance(model, radiance_unit)
     feats = model.material.features
     sdf_blob = None if feats is None else {"config": dataclasses.asdict(source_config(source)),
                                            "center": feats.center.tolist(), "radius": feats.radius}

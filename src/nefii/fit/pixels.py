@@ -45,6 +45,10 @@ class Pixels:
         """Each object pixel ``i``'s hit at footprint position ``k[i]``."""
         return self.footprint[k * len(self.points) + torch.arange(len(self.points), device=k.device)]
 
+    def scaled(self, k: float) -> "Pixels":
+        """The same pixels with every colour (object and background) times ``k``."""
+        return Pixels(self.points, self.rgb * k, self.bg_dirs, self.bg_rgb * k, self.view, self.bg_view, self.footprint)
+
     def to(self, device: torch.device | str) -> "Pixels":
         return Pixels(self.points.map(lambda t: t.to(device)), self.rgb.to(device), self.bg_dirs.to(device),
                       self.bg_rgb.to(device), self.view.to(device), self.bg_view.to(device),

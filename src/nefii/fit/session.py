@@ -27,6 +27,7 @@ from .light_init import SGInit, estimate_light, set_sg_parameters, sg_from_light
 from .model import NeFIIModel
 from .pixels import Pixels, background_clipping, first_hits
 from .trainer import Trainer
+from .units import radiance_unit
 
 
 @dataclass
@@ -42,7 +43,10 @@ class FitSession:
     box: tuple[Tensor, Tensor]
     """corners of the geometry's bounding box (CPU)"""
     pixels: Pixels
+    """the training pixels, their colours in the fit's unit of radiance"""
     trainer: Trainer
+    radiance_unit: float
+    """the images' radiance the fit calls 1 (:mod:`nefii.fit.units`): what the written model is scaled back by"""
     data: DataFingerprint
     """what the fit is on (the run's manifest records it)"""
 
@@ -127,8 +131,13 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     check_in_view(scene, box, source)
     pixels = first_hits(scene, geometry).to(device)
     clipped = 0 if scene.clipped is None else int(scene.clipped.sum())
+    unit = radiance_unit(pixels.rgb, scene.root)
+    pixels = pixels.scaled(1.0 / unit)
     say(f"{len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels"
         + (f"; {clipped} clipped pixels (some channel at the file's top value) left out" if clipped else ""))
+    if unit != 1.0:
+        say(f"the images are {'brighter' if unit > 1.0 else 'darker'} than the fit is made for: fitted in units of "
+            f"{unit:.4g} of their radiance (the written light and cache are in theirs)")
     if scene.exposure is not None:
         span = float(scene.exposure.log2().max() - scene.exposure.log2().min())
         if cfg.exposure == "per_view":
@@ -153,8 +162,8 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
             say("lighting initialised from shading and shadows (no sharp peak: a lobe on the direction that best "
                 "explains the shading, sharpened when the roughness warm-up ends)")
     trainer = Trainer(cfg, model, geometry, pixels, device, dist, num_views=len(scene), metered=scene.exposure,
-                      sun_lobe=sun_lobe)
+                      sun_lobe=sun_lobe, radiance_unit=unit)
     if checkpoint is not None:
         checkpoint.restore(trainer.load_state_dict, "this run's model")
         say(f"resumed from {checkpoint.path} at step {trainer.step}")
-    return FitSession(cfg, scene, source, geometry, box, pixels, trainer, data_print)
+    return FitSession(cfg, scene, source, geometry, box, pixels, trainer, unit, data_print)

@@ -35,6 +35,7 @@ from .model import NeFIIModel, decode_material
 from .path_trace import PathTraced, SurfacePoints, Transport, path_trace, sample_directions, two_point_pair
 from .pixels import FOOTPRINT_GRID, Pixels
 from .policies import Alternation, LightSolveSchedule, PriorFade, RoughnessWarmup
+from .units import rescale_radiance
 
 LIGHT_SOLVE_SAMPLES = 32
 """estimator samples per pixel when the light's amplitudes are solved (the solve is rare: its noise is cheap
@@ -76,11 +77,12 @@ class StepLog:
 class Trainer:
     def __init__(self, cfg: FitConfig, model: NeFIIModel, geometry: Geometry, pixels: Pixels,
                  device: torch.device, dist: DistContext = DistContext(), num_views: int = 1,
-                 metered: Tensor | None = None, sun_lobe: int | None = None) -> None:
+                 metered: Tensor | None = None, sun_lobe: int | None = None, radiance_unit: float = 1.0) -> None:
         """``num_views``: the training views (``exposure = per_view`` learns a gain for each); ``metered``: their
         EXIF exposures, where the gains start (:class:`nefii.fit.exposure.ViewGains`); ``sun_lobe``: the SG lobe
         the light's start put on a searched sun, sharpened to ``light.sharpness_init_peak`` when the roughness
-        warm-up ends (:mod:`nefii.fit.light_init`)."""
+        warm-up ends (:mod:`nefii.fit.light_init`); ``radiance_unit``: the images' radiance that ``pixels``' colours
+        are in units of (:mod:`nefii.fit.units`), kept in checkpoints so a resumed fit reads its model in it."""
         self.cfg, self.model, self.geometry, self.pixels, self.device = cfg, model.to(device), geometry, pixels, device
         self.dist = dist
         self.gains = ViewGains(num_views, metered).to(device) if cfg.exposure == "per_view" else None
@@ -107,6 +109,7 @@ class Trainer:
         solves = cfg.light.kind == "sg" and cfg.loss == "l2_pair"     # what light_solve's quadratic is
         self.light_solve = LightSolveSchedule(cfg.light_solve_every if solves else 0, cfg.steps)
         self.sun_lobe = sun_lobe
+        self.radiance_unit = radiance_unit
         self.step = 0
 
     # ---- one step
@@ -246,12 +249,16 @@ class Trainer:
             "config": config_to_dict(self.cfg),
             "gains": None if self.gains is None else self.gains.state_dict(),
             "sun_lobe": self.sun_lobe,
+            "radiance_unit": self.radiance_unit,
         }
 
     def load_state_dict(self, state: dict) -> None:
         self.step = int(state["step"])
         self.sun_lobe = state.get("sun_lobe")                     # checkpoints from before the sun search: none
         self.model.load_state_dict(state["model"])
+        saved = float(state.get("radiance_unit", 1.0))           # checkpoints from before the unit: the images'
+        if saved != self.radiance_unit:
+            rescale_radiance(self.model, saved / self.radiance_unit)
         if self.gains is not None:
             self.gains.load_state_dict(state["gains"])
         self.optimizer.load_state_dict(state["optimizer"])
