@@ -103,7 +103,8 @@ def main() -> None:
         f"# exposure ({stamp()})", "",
         f"Machine: {machine()}. Built-in scenes with every colour image times the factor, {args.res}x{args.res}, "
         f"{args.views} training views; `cpu` preset{' + ' + ' '.join(args.extra) if args.extra else ''}; eval at "
-        f"{args.eval_spp} spp, masked, albedo aligned per view and channel. This invocation: {len(jobs)} runs in "
+        f"{args.eval_spp} spp, masked, albedo aligned per view and channel (specular PSNR compares radiance as it is, "
+        f"so it moves with the exposure). This invocation: {len(jobs)} runs in "
         f"{(time.time() - t0) / 60:.1f} min (cached runs reused); current code {code_version()}.", "",
         *note_lines(args.note), *table(args.scenes, args.factors, args.seeds)])
 
