@@ -132,7 +132,8 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     pixels = first_hits(scene, geometry).to(device)
     clipped = 0 if scene.clipped is None else int(scene.clipped.sum())
     unit = radiance_unit(pixels.rgb, scene.root)
-    pixels = pixels.scaled(1.0 / unit)
+    if unit != 1.0:                     # no copy of every colour where the images are taken as they are
+        pixels = pixels.scaled(1.0 / unit)
     say(f"{len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels"
         + (f"; {clipped} clipped pixels (some channel at the file's top value) left out" if clipped else ""))
     if unit != 1.0:

@@ -37,8 +37,7 @@ def radiance_unit(rgb: Float[Tensor, "P 3"], where: Path | None = None) -> float
     lum = rgb[:: -(-len(rgb) // SAMPLE)].float().mean(-1)
     top = float(torch.quantile(lum, QUANTILE)) if len(lum) else 0.0
     if not top > 0.0:
-        raise InputError(where, "the object's pixels are all black (below the 99th percentile): is the "
-                         "exposure or the mask wrong?")
+        raise InputError(where, "99% of the object's pixels are black: is the exposure or the mask wrong?")
     return top / min(max(top, LOW), HIGH)
 
 
