@@ -2,11 +2,13 @@
 material, the normal and the radiance cache's own colour (its "neural rendering").
 
 Pixels are box-filtered, as the ground truth of a renderer is (``nefii synth``'s colour and material
-layers average each pixel's jittered samples): every pixel is the mean over ``k x k`` stratified
-sub-pixel rays that hit the object, ``k`` the largest with ``k^2 <= min(spp, 16)``, each traced with
+layers average each pixel's jittered samples). The material layers (albedo, roughness, normal, the cache's
+colour) and the mask are the mean over 4 x 4 stratified sub-pixel rays whatever the sample count; the
+path-traced colour over ``k x k`` of them, ``k`` the largest with ``k^2 <= min(spp, 16)``, each traced with
 ``spp // k^2`` estimator samples. Reading the material only at pixel centres would compare a point
 sample with a pixel average, which caps even the true material at 24-30 dB albedo PSNR on the
-built-in scenes (docs/experiments.md, 2026-11-25).
+built-in scenes (docs/experiments.md, 2026-11-25); with the material on the colour's grid, an eval at
+4 spp scored a fit 0.9 dB below the same fit at 64 spp (docs/experiments.md, 2026-11-30).
 """
 from __future__ import annotations
 
@@ -84,13 +86,31 @@ class _ChunkSums:
 def _render_chunk(model: NeFIIModel, geometry: Geometry, hit: SurfaceHit, d: Tensor, pixel: Tensor, c: Tensor,
                   per_ray: int, seed: int, transport: Transport) -> _ChunkSums:
     """The sub-pixel rays ``c`` (indices of hits), traced with a generator of their own seeded by ``seed``, so
-    the result does not depend on which thread renders the chunk or when."""
-    g = torch.Generator(device=d.device).manual_seed(seed)
+    the result does not depend on which thread renders the chunk or when. ``per_ray = 0``: the material
+    layers only (the colour layers are zero)."""
     pts = SurfacePoints.from_hit(hit, c, -d[c])
     material = decode_material(model, pts.position, pts.lookup_normal)
+    cache = model.cache(pts.position, pts.normal, pts.wo)
+    if per_ray == 0:
+        zero = torch.zeros_like(cache)
+        return _ChunkSums(pixel[c], zero, zero, zero, material.albedo, pts.normal, cache, material.roughness)
+    g = torch.Generator(device=d.device).manual_seed(seed)
     traced = path_trace(model, geometry, pts, material, per_ray, g, transport)
     return _ChunkSums(pixel[c], traced.radiance.rgb, traced.radiance.specular, traced.radiance.diffuse,
-                      material.albedo, pts.normal, model.cache(pts.position, pts.normal, pts.wo), material.roughness)
+                      material.albedo, pts.normal, cache, material.roughness)
+
+
+@dataclass(frozen=True)
+class _Pass:
+    """One set of sub-pixel rays through every pixel of a view and their sums per pixel."""
+
+    sums: dict[str, Tensor]
+    """``rgb``, ``specular``, ``diffuse``, ``albedo``, ``normal``, ``cache`` ``(P, 3)`` and ``roughness``
+    ``(P,)``, summed over each pixel's rays that hit"""
+    hits: Float[Tensor, " P"]
+    """rays of the pixel that hit the geometry"""
+    centre_dirs: Float[Tensor, "P 3"]
+    """the mean direction of the pixel's rays"""
 
 
 @contextmanager
@@ -108,8 +128,9 @@ def _one_intra_op_thread() -> Iterator[None]:
 def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: int, num_samples: int,
                 generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 512,
                 workers: int | None = None) -> ViewPrediction:
-    """``num_samples`` estimator samples per pixel, spread over its sub-pixel rays (a single ray through the
-    pixel centre when ``num_samples < 4``). ``chunk`` rays at a time: 512 keeps a chunk's (directions x 128
+    """``num_samples`` estimator samples per pixel, spread over its colour's sub-pixel rays (a single ray through
+    the pixel centre when ``num_samples < 4``); the material layers and the mask read 4 x 4 rays a pixel at any
+    ``num_samples`` (a second set of rays where the colour's are fewer). ``chunk`` rays at a time: 512 keeps a chunk's (directions x 128
     lobes) tensors near the CPU's cache; 4096 took 1.2x as long a view at 256 spp on 2 threads.
 
     On the CPU the chunks are rendered by ``workers`` threads (default: torch's thread count), each running
@@ -119,44 +140,51 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
     any number of workers."""
     H, W = cameras.height, cameras.width
     device = next(model.parameters()).device
-    k = subpixel_grid(num_samples)
+    k, k_material = subpixel_grid(num_samples), subpixel_grid(MAX_SUBPIXELS)
     per_ray = max(1, num_samples // (k * k))
-    n_px = H * W
-    pixel, u = subpixel_samples(n_px, k, generator, device)
-    o, d = jittered_pixel_rays(cameras.c2w[view].to(device), cameras.K[view].to(device), W, pixel, u)
-    o, d = o.float(), d.float()
-    hit = geometry.intersect(Rays(o, d))
-    idx = hit.valid.nonzero().squeeze(-1)
-    chunks = idx.split(chunk)
-    base = int(torch.randint(0, 2**62, (1,), generator=generator, device=device))
-    seeds = [base + i for i in range(len(chunks))]
-
-    def render(i: int) -> _ChunkSums:
-        return _render_chunk(model, geometry, hit, d, pixel, chunks[i], per_ray, seeds[i], transport)
-
     workers = torch.get_num_threads() if workers is None else workers
-    if device.type == "cpu" and workers > 1 and len(chunks) > 1:
-        with _one_intra_op_thread(), ThreadPoolExecutor(workers) as pool:
-            results = list(pool.map(render, range(len(chunks))))
-    else:
-        results = [render(i) for i in range(len(chunks))]
 
-    sums = {name: torch.zeros(n_px, 3, device=device) for name in ("rgb", "specular", "diffuse", "albedo", "normal",
-                                                                 "cache")}
-    rough = torch.zeros(n_px, device=device)
-    for r in results:
-        for name, value in sums.items():
-            value.index_add_(0, r.pixel, getattr(r, name))
-        rough.index_add_(0, r.pixel, r.roughness)
-    hits = torch.zeros(n_px, device=device).index_add_(0, pixel, hit.valid.float())
-    inv = 1.0 / hits.clamp_min(1.0)
-    mean = {name: v * inv.unsqueeze(-1) for name, v in sums.items()}
-    on = hits > 0
-    centre_dirs = d.reshape(n_px, k * k, 3).mean(1)
-    rgb = torch.where(on.unsqueeze(-1), mean["rgb"], model.env.radiance(normalize(centre_dirs)))
+    def one_pass(grid: int, samples: int) -> _Pass:
+        n_px = H * W
+        pixel, u = subpixel_samples(n_px, grid, generator, device)
+        o, d = jittered_pixel_rays(cameras.c2w[view].to(device), cameras.K[view].to(device), W, pixel, u)
+        o, d = o.float(), d.float()
+        hit = geometry.intersect(Rays(o, d))
+        chunks = hit.valid.nonzero().squeeze(-1).split(chunk)
+        base = int(torch.randint(0, 2**62, (1,), generator=generator, device=device))
+
+        def render(i: int) -> _ChunkSums:
+            return _render_chunk(model, geometry, hit, d, pixel, chunks[i], samples, base + i, transport)
+
+        if device.type == "cpu" and workers > 1 and len(chunks) > 1:
+            with _one_intra_op_thread(), ThreadPoolExecutor(workers) as pool:
+                results = list(pool.map(render, range(len(chunks))))
+        else:
+            results = [render(i) for i in range(len(chunks))]
+        sums = {name: torch.zeros(n_px, 3, device=device) for name in ("rgb", "specular", "diffuse", "albedo",
+                                                                     "normal", "cache")}
+        sums["roughness"] = torch.zeros(n_px, device=device)
+        for r in results:
+            for name, value in sums.items():
+                value.index_add_(0, r.pixel, getattr(r, name))
+        hits = torch.zeros(n_px, device=device).index_add_(0, pixel, hit.valid.float())
+        return _Pass(sums, hits, d.reshape(n_px, grid * grid, 3).mean(1))
+
+    layers = one_pass(k_material, per_ray if k == k_material else 0)
+    colour = layers if k == k_material else one_pass(k, per_ray)
+
+    def mean(p: _Pass, name: str) -> Tensor:
+        v = p.sums[name]
+        inv = 1.0 / p.hits.clamp_min(1.0)
+        return v * (inv.unsqueeze(-1) if v.dim() == 2 else inv)
+
+    on = colour.hits > 0
+    rgb = torch.where(on.unsqueeze(-1), mean(colour, "rgb"), model.env.radiance(normalize(colour.centre_dirs)))
+    normal = mean(layers, "normal")
     shape3 = (H, W, 3)
-    return ViewPrediction(rgb=rgb.reshape(shape3), specular=mean["specular"].reshape(shape3),
-                          diffuse=mean["diffuse"].reshape(shape3), albedo=mean["albedo"].reshape(shape3),
-                          roughness=(rough * inv).reshape(H, W),
-                          normal=torch.where(on.unsqueeze(-1), normalize(mean["normal"]), mean["normal"]).reshape(shape3),
-                          cache=mean["cache"].reshape(shape3), mask=(hits >= 0.5 * k * k).reshape(H, W))
+    return ViewPrediction(rgb=rgb.reshape(shape3), specular=mean(colour, "specular").reshape(shape3),
+                          diffuse=mean(colour, "diffuse").reshape(shape3), albedo=mean(layers, "albedo").reshape(shape3),
+                          roughness=mean(layers, "roughness").reshape(H, W),
+                          normal=torch.where((layers.hits > 0).unsqueeze(-1), normalize(normal), normal).reshape(shape3),
+                          cache=mean(layers, "cache").reshape(shape3),
+                          mask=(layers.hits >= 0.5 * k_material * k_material).reshape(H, W))
