@@ -127,10 +127,11 @@ def _one_intra_op_thread() -> Iterator[None]:
 @torch.no_grad()
 def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: int, num_samples: int,
                 generator: torch.Generator | None, transport: Transport = Transport(), chunk: int = 512,
-                workers: int | None = None) -> ViewPrediction:
+                workers: int | None = None, filtered_layers: bool = True) -> ViewPrediction:
     """``num_samples`` estimator samples per pixel, spread over its colour's sub-pixel rays (a single ray through
     the pixel centre when ``num_samples < 4``); the material layers and the mask read 4 x 4 rays a pixel at any
-    ``num_samples`` (a second set of rays where the colour's are fewer). ``chunk`` rays at a time: 512 keeps a chunk's (directions x 128
+    ``num_samples`` (a second set of rays where the colour's are fewer), or the colour's rays where
+    ``filtered_layers`` is false (a preview's). ``chunk`` rays at a time: 512 keeps a chunk's (directions x 128
     lobes) tensors near the CPU's cache; 4096 took 1.2x as long a view at 256 spp on 2 threads.
 
     On the CPU the chunks are rendered by ``workers`` threads (default: torch's thread count), each running
@@ -140,7 +141,8 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
     any number of workers."""
     H, W = cameras.height, cameras.width
     device = next(model.parameters()).device
-    k, k_material = subpixel_grid(num_samples), subpixel_grid(MAX_SUBPIXELS)
+    k = subpixel_grid(num_samples)
+    k_material = subpixel_grid(MAX_SUBPIXELS) if filtered_layers else k
     per_ray = max(1, num_samples // (k * k))
     workers = torch.get_num_threads() if workers is None else workers
 

@@ -23,7 +23,7 @@ def write_preview(path: Path, model: NeFIIModel, geometry: Geometry, scene: Scen
     g = torch.Generator(device=next(model.parameters()).device).manual_seed(seed)
     was_training = model.training
     model.eval()
-    pred = render_view(model, geometry, scene.cameras, view, num_samples, g, transport)
+    pred = render_view(model, geometry, scene.cameras, view, num_samples, g, transport, filtered_layers=False)
     model.train(was_training)
     mask = pred.mask.cpu().numpy()[..., None]
     photo = scene.images[view].numpy()
