@@ -3,6 +3,7 @@ are; beyond it, a fit of the same scene at another exposure is the same fit, its
 scaled by the exposure."""
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from nefii.fit.outputs import load_run
 from nefii.fit.session import prepare_fit
 from nefii.fit.units import HIGH, LOW, radiance_unit
 from nefii.io.exr import read_exr, write_exr
+from nefii.sdf.outputs import load_sdf
 
 
 @pytest.fixture(scope="module")
@@ -103,3 +105,20 @@ def test_a_model_written_before_the_cache_had_a_unit_loads(tiny_scene):
     model.cache.radiance_unit.fill_(3.0)
     model.load_state_dict(state)
     assert float(model.cache.radiance_unit) == 1.0
+
+
+def test_the_geometry_stage_does_not_depend_on_the_images_exposure(tiny_scene, tmp_path):
+    """`nefii geometry` on the same scene at 8 and at 64 times its exposure (both beyond the range): the same SDF
+    to the bit, and the unit it took the colours in recorded (8 times larger for the second); without the unit
+    the colour loss's log1p and the colour network's softplus made them two problems."""
+    outs = []
+    for k, name in ((8.0, "bright"), (64.0, "brighter")):
+        scene = exposed(tiny_scene, tmp_path / name, k)
+        out = tmp_path / f"geo_{name}"
+        assert main(["geometry", str(scene), "--out", str(out), "--preset", "tiny", "--quiet",
+                     "--set", "threads=1"]) == 0
+        outs.append(out)
+    units = [json.loads((o / "geometry_stats.json").read_text())["radiance_unit"] for o in outs]
+    assert units[0] > HIGH and units[1] == 8.0 * units[0]
+    a, b = (load_sdf(o).sdf.state_dict() for o in outs)
+    assert a.keys() == b.keys() and all(torch.equal(a[n], b[n]) for n in a)

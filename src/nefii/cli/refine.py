@@ -67,7 +67,9 @@ def geometry_anchor(folder: Path, loaded: LoadedSDF, scene: SceneData) -> Geomet
     the SDF to a mesh (no colour network to keep)."""
     stats = folder / "geometry_stats.json"
     try:
-        source = str(json.loads(stats.read_text())["source"])
+        record = json.loads(stats.read_text())
+        source = str(record["source"])
+        unit = float(record.get("radiance_unit", 1.0))      # a stage from before the unit took colours as they were
     except (OSError, ValueError, KeyError) as e:
         raise InputError(stats, f"cannot read the geometry stage's record ({type(e).__name__}: {e})") from None
     if not source.startswith("images"):
@@ -81,7 +83,8 @@ def geometry_anchor(folder: Path, loaded: LoadedSDF, scene: SceneData) -> Geomet
     model = NeuSModel(cfg, background=masks is None)
     ckpt.restore(lambda state: model.load_state_dict(state["model"]), "the geometry stage's model")
     model.sdf.load_state_dict(loaded.sdf.state_dict())
-    return GeometryAnchor(model, ImageObjective.from_views(cfg, scene, loaded.normalization, masks, torch.device("cpu")),
+    return GeometryAnchor(model, ImageObjective.from_views(cfg, scene, loaded.normalization, masks, torch.device("cpu"),
+                                                           unit),
                           cfg.steps)
 
 

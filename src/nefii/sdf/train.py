@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from ..camera import pixel_rays
 from ..data.scene import SceneData
+from ..fit.units import radiance_unit
 from ..io.checkpoints import LoadedCheckpoint, save_checkpoint
 from ..optim import descend
 from .config import GeometryConfig
@@ -49,23 +50,36 @@ class ImageObjective:
     """normalised ray origins of every training pixel"""
     directions: Float[Tensor, "P 3"]
     rgb: Float[Tensor, "P 3"]
+    """in units of ``unit`` of the images' radiance"""
     mask: Bool[Tensor, " P"] | None
+    unit: float = 1.0
+    """the images' radiance the stage calls 1 (:func:`nefii.fit.units.radiance_unit`)"""
 
     def __post_init__(self) -> None:
         self.foreground = None if self.mask is None else self.mask.nonzero().squeeze(-1)
 
     @classmethod
     def from_views(cls, cfg: GeometryConfig, views: SceneData, norm: Normalization, masks: Tensor | None,
-                   device: torch.device) -> ImageObjective:
-        """Every pixel of ``views`` as a ray in ``norm``'s coordinates; ``masks`` (V, H, W) bool or None."""
+                   device: torch.device, unit: float | None = None) -> ImageObjective:
+        """Every pixel of ``views`` as a ray in ``norm``'s coordinates; ``masks`` (V, H, W) bool or None.
+        The colours are divided by ``unit``, by default the fit's unit of the masked pixels (all pixels without
+        masks): the colour loss's ``log1p`` and the colour network's ``softplus`` are absolute, and the corner's
+        images times 8 reconstructed with normals 8.9 degrees off (median) against 4.8-5.7 as rendered
+        (docs/experiments.md, 2026-11-30)."""
         o, d, rgb = [], [], []
         for v in range(len(views)):
             ov, dv = pixel_rays(views.cameras.c2w[v], views.cameras.K[v], views.height, views.width)
             o.append(norm.to_unit(ov.reshape(-1, 3)).float())
             d.append(dv.reshape(-1, 3).float())
             rgb.append(views.images[v].reshape(-1, 3))
-        mask = None if masks is None else masks.reshape(-1).to(device)
-        return cls(cfg, torch.cat(o).to(device), torch.cat(d).to(device), torch.cat(rgb).to(device), mask)
+        colours = torch.cat(rgb)
+        mask = None if masks is None else masks.reshape(-1)
+        if unit is None:
+            unit = radiance_unit(colours if mask is None else colours[mask], views.root)
+        if unit != 1.0:
+            colours = colours / unit
+        return cls(cfg, torch.cat(o).to(device), torch.cat(d).to(device), colours.to(device),
+                   None if mask is None else mask.to(device), unit)
 
     def loss(self, model: NeuSModel, step: int, generator: torch.Generator) -> GeometryLoss:
         cfg = self.cfg
