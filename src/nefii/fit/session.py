@@ -25,6 +25,7 @@ from .exposure import metered_log_gains, without_gains
 from .geometry_source import GeometrySource, adapt_to_source, resolve_source
 from .light_init import SGInit, estimate_light, set_sg_parameters, sg_from_light, sky_sun
 from .model import NeFIIModel
+from .backdrop import without_backdrop
 from .pixels import Pixels, background_clipping, first_hits
 from .trainer import Trainer
 from .units import radiance_unit
@@ -129,13 +130,16 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     say(f"{len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
         f"{describe_geometry(source, geometry, cfg, features.dim if features else 0)}")
     check_in_view(scene, box, source)
-    pixels = first_hits(scene, geometry).to(device)
+    pixels, backdrop = without_backdrop(first_hits(scene, geometry).to(device))
     clipped = 0 if scene.clipped is None else int(scene.clipped.sum())
     unit = radiance_unit(pixels.rgb, scene.root)
     if unit != 1.0:                     # no copy of every colour where the images are taken as they are
         pixels = pixels.scaled(1.0 / unit)
     say(f"{len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels"
         + (f"; {clipped} clipped pixels (some channel at the file's top value) left out" if clipped else ""))
+    if backdrop is not None:
+        say(f"the background is one colour ({', '.join(f'{c:.3g}' for c in backdrop.tolist())}) in every view: a "
+            "backdrop composited behind the object, not the environment; left out of the light's fit")
     if unit != 1.0:
         say(f"the images are {'brighter' if unit > 1.0 else 'darker'} than the fit is made for: fitted in units of "
             f"{unit:.4g} of their radiance (the written light and cache are in theirs)")
@@ -149,7 +153,7 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     model = build_model(cfg, box, features)
     sun_lobe = None
     if checkpoint is None and shading_start(cfg):      # the sky's clipping is read only for the start that uses it
-        bg = background_clipping(scene, geometry)
+        bg = None if backdrop is not None else background_clipping(scene, geometry)
         seen_sun = None if bg is None else sky_sun(*bg)
         init = initialise_light(model, pixels, geometry, cfg, scene.exposure, seen_sun)
         sun_lobe = init.sun_lobe
