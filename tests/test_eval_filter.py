@@ -25,17 +25,21 @@ class Stripes(nn.Module):
         return Material(on.unsqueeze(-1).expand(*on.shape, 3), torch.full_like(on, 0.5))
 
 
-def test_eval_averages_the_material_over_each_pixel():
+def plane_view(res: int, eye: tuple[float, float, float], fov_deg: float):
+    """A plane at z = 0 seen from ``eye`` by one ``res`` x ``res`` camera, and a `tiny` model over it."""
     plane = MeshGeometry(np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
-    res = 16
-    c2w = look_at(torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
+    c2w = look_at(torch.tensor(eye, dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
                   torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
-    K = intrinsics_from_fov(np.radians(20.0), res, res)
-    pixel_width = 2 * 5.0 * np.tan(np.radians(10.0)) / res                 # on the plane, about 0.11
+    cams = Cameras(intrinsics_from_fov(np.radians(fov_deg), res, res).unsqueeze(0), c2w.unsqueeze(0), res, res)
     box = tuple(torch.from_numpy(b.copy()) for b in plane.bounds)
-    model = build_model(resolve_config("tiny", []), box)
+    return plane, cams, build_model(resolve_config("tiny", []), box)
+
+
+def test_eval_averages_the_material_over_each_pixel():
+    res = 16
+    plane, cams, model = plane_view(res, (0.0, 0.0, 5.0), 20.0)
+    pixel_width = 2 * 5.0 * np.tan(np.radians(10.0)) / res                 # on the plane, about 0.11
     model.material = Stripes(period=pixel_width / 5.3)                     # 5.3 stripes per pixel
-    cams = Cameras(K.unsqueeze(0), c2w.unsqueeze(0), res, res)
     assert subpixel_grid(64) == 4 and subpixel_grid(1) == 1
     filtered = render_view(model, plane, cams, 0, 64, torch.Generator().manual_seed(0)).albedo[..., 0]
     # a point sample would be 0 or 1; the pixel average of 5.3 stripes is near their duty cycle 0.5
@@ -47,13 +51,8 @@ def test_the_material_layers_do_not_depend_on_the_sample_count():
     """At 1 spp the colour is one ray through each pixel's centre, but the albedo, roughness, normal and mask
     are still the 4 x 4 sub-pixel average: an eval at a low ``--spp`` scores the same material (it scored a fit
     0.9 dB lower when the material shared the colour's rays)."""
-    plane = MeshGeometry(np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
     res = 16
-    c2w = look_at(torch.tensor([0.3, -0.4, 5.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
-                  torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
-    cams = Cameras(intrinsics_from_fov(np.radians(20.0), res, res).unsqueeze(0), c2w.unsqueeze(0), res, res)
-    box = tuple(torch.from_numpy(b.copy()) for b in plane.bounds)
-    model = build_model(resolve_config("tiny", []), box)
+    plane, cams, model = plane_view(res, (0.3, -0.4, 5.0), 20.0)
     model.material = Stripes(period=2 * 5.0 * np.tan(np.radians(10.0)) / res / 5.3)
     low, high = (render_view(model, plane, cams, 0, spp, torch.Generator().manual_seed(0)) for spp in (1, 64))
     assert (low.albedo[..., 0] - 0.5).abs().mean() < 0.15               # filtered: a point sample is 0 or 1
@@ -65,13 +64,7 @@ def test_the_material_layers_do_not_depend_on_the_sample_count():
 def test_render_view_is_the_same_for_any_number_of_worker_threads():
     """Chunks rendered by threads draw from generators of their own and are summed in order: one worker and
     three give the same image to the bit, and a different seed gives a different one."""
-    plane = MeshGeometry(np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
-    res = 12
-    c2w = look_at(torch.tensor([1.0, -2.0, 5.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
-                  torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
-    cams = Cameras(intrinsics_from_fov(np.radians(30.0), res, res).unsqueeze(0), c2w.unsqueeze(0), res, res)
-    box = tuple(torch.from_numpy(b.copy()) for b in plane.bounds)
-    model = build_model(resolve_config("tiny", []), box)
+    plane, cams, model = plane_view(12, (1.0, -2.0, 5.0), 30.0)
 
     def render(workers: int, seed: int = 0):
         return render_view(model, plane, cams, 0, 8, torch.Generator().manual_seed(seed), chunk=40, workers=workers)
