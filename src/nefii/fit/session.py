@@ -130,7 +130,9 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     say(f"{len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
         f"{describe_geometry(source, geometry, cfg, features.dim if features else 0)}")
     check_in_view(scene, box, source)
-    pixels, backdrop = without_backdrop(first_hits(scene, geometry).to(device))
+    pixels = first_hits(scene, geometry).to(device)
+    seen_background = len(pixels.bg_dirs)
+    pixels, backdrop = without_backdrop(pixels)
     clipped = 0 if scene.clipped is None else int(scene.clipped.sum())
     unit = radiance_unit(pixels.rgb, scene.root)
     if unit != 1.0:                     # no copy of every colour where the images are taken as they are
@@ -138,8 +140,8 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     say(f"{len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels"
         + (f"; {clipped} clipped pixels (some channel at the file's top value) left out" if clipped else ""))
     if backdrop is not None:
-        say(f"the background is one colour ({', '.join(f'{c:.3g}' for c in backdrop.tolist())}) in every view: a "
-            "backdrop composited behind the object, not the environment; left out of the light's fit")
+        say(f"the {seen_background} background pixels are one colour ({', '.join(f'{c:.3g}' for c in backdrop.tolist())}):"
+            " a backdrop composited behind the object, not the environment; left out of the light's fit")
     if unit != 1.0:
         say(f"the images are {'brighter' if unit > 1.0 else 'darker'} than the fit is made for: fitted in units of "
             f"{unit:.4g} of their radiance (the written light and cache are in theirs)")
