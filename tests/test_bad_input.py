@@ -109,6 +109,14 @@ def setup_face_out_of_range(scene: Path, tmp: Path) -> Path:
     return root
 
 
+def setup_inverted_winding(scene: Path, tmp: Path) -> Path:
+    """The mesh with every face wound the other way: its normals point into the object."""
+    root = _scene_copy(scene, tmp)
+    mesh = trimesh.load(root / "mesh.ply", force="mesh", process=False)
+    trimesh.Trimesh(mesh.vertices, np.array(mesh.faces)[:, ::-1], process=False).export(root / "mesh.ply")
+    return root
+
+
 def setup_huge_cameras(scene: Path, tmp: Path) -> Path:
     meta = json.loads((scene / "transforms_test.json").read_text())
     meta.update(w=1_000_000, h=1_000_000, fl_x=1e6, fl_y=1e6, cx=5e5, cy=5e5)
@@ -194,6 +202,8 @@ CASES = [
          ("transforms.json", "'EQUIRECTANGULAR' is not supported"), setup_equirectangular_capture),
     Case("face index out of range", "fit {bad} --out {tmp}/out --preset tiny --quiet", 2,
          ("mesh.ply", "face 3 refers to vertex"), setup_face_out_of_range),
+    Case("mesh wound inside out", "fit {bad} --out {tmp}/out --preset tiny --quiet", 2,
+         ("mesh.ply", "see the back of its triangles", "invert"), setup_inverted_winding),
     # ---- geometry settings
     Case("geometry samples=-1", GEO + " --set samples=-1", 2, ("samples", "below 2")),
     Case("geometry mesh_resolution", GEO + " --set mesh_resolution=100000", 2, ("mesh_resolution", "above 2048")),
