@@ -298,6 +298,21 @@ def test_a_mesh_far_from_every_camera_is_a_warning_and_unseen_an_error(scene, tm
     assert_one_line_error(r, "no training pixel sees the geometry")
 
 
+def test_a_mesh_partly_wound_inside_out_is_a_warning(scene, tmp_path):
+    """A fifth of the faces reversed: the fit runs, and says the winding is mixed (all of them reversed is an
+    error: the bad-input table above)."""
+    mesh = trimesh.load(scene / "mesh.ply", force="mesh", process=False)
+    faces = np.array(mesh.faces)
+    some = np.random.default_rng(0).random(len(faces)) < 0.2
+    faces[some] = faces[some][:, ::-1]
+    trimesh.Trimesh(mesh.vertices, faces, process=False).export(tmp_path / "mixed.ply")
+    r = _fit_one_step(scene, tmp_path / "out", "--mesh", str(tmp_path / "mixed.ply"))
+    assert r.rc == 0, r.err
+    assert any("mixed.ply" in w and "back of its triangles" in w for w in r.warnings), r.err
+    r = _fit_one_step(scene, tmp_path / "out2")
+    assert r.rc == 0 and not any("back of its triangles" in w for w in r.warnings), r.err
+
+
 def test_every_preset_is_valid_and_a_typo_is_named():
     from nefii.fit.config import PRESETS, resolve_config
     from nefii.sdf.config import GEOMETRY_PRESETS, resolve_geometry_config
