@@ -45,6 +45,11 @@ def cropped_scene(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def session(cropped_scene):
+    return prepare_fit(resolve_config("tiny", []), cropped_scene)
+
+
 def test_the_cropped_views_read_back_with_their_intrinsics(cropped_scene):
     scene = load_scene(cropped_scene, "train")
     assert (scene.width, scene.height) == (22, 18)
@@ -53,8 +58,7 @@ def test_the_cropped_views_read_back_with_their_intrinsics(cropped_scene):
     assert float(K[0, 2]) == 12.0 - COLS[0] and float(K[1, 2]) == 12.0 - ROWS[0]
 
 
-def test_the_fit_finds_its_object_pixels_inside_the_masks(cropped_scene):
-    session = prepare_fit(resolve_config("tiny", []), cropped_scene)
+def test_the_fit_finds_its_object_pixels_inside_the_masks(cropped_scene, session):
     scene = load_scene(cropped_scene, "train")
     inside = int(scene.masks.sum())
     found = len(session.pixels.points)
@@ -62,8 +66,7 @@ def test_the_fit_finds_its_object_pixels_inside_the_masks(cropped_scene):
     assert 0.98 * inside <= found <= inside
 
 
-def test_eval_renders_the_object_where_the_ground_truth_has_it(cropped_scene):
-    session = prepare_fit(resolve_config("tiny", []), cropped_scene)
+def test_eval_renders_the_object_where_the_ground_truth_has_it(cropped_scene, session):
     test = load_scene(cropped_scene, "test")
     for v in range(len(test)):
         pred = render_view(session.model, session.geometry, test.cameras, v, 4, torch.Generator().manual_seed(0))

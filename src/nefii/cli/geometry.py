@@ -111,15 +111,17 @@ def _geometry(args: argparse.Namespace, cfg: GeometryConfig, device: torch.devic
         objective = MeshObjective(cfg, data)
         model = NeuSModel(cfg, background=False)
         source = f"mesh {args.from_mesh}"
+        unit = 1.0                                        # no colours
     else:
         if args.masks == "on" and scene.masks is None:
             raise InputError(args.data, "--masks on, but the dataset has no masks (no mask files, no alpha)")
         masks = None if args.masks == "off" else scene.masks
         norm = normalization_from_cameras(scene.cameras, masks, root=args.data)
         objective = ImageObjective.from_views(cfg, scene, norm, masks, device)
-        if objective.unit != 1.0:
-            print(f"nefii geometry: the images are {'brighter' if objective.unit > 1.0 else 'darker'} than the stage "
-                  f"is made for: colours taken in units of {objective.unit:.4g}")
+        unit = objective.unit
+        if unit != 1.0:
+            print(f"nefii geometry: the images are {'brighter' if unit > 1.0 else 'darker'} than the stage "
+                  f"is made for: colours taken in units of {unit:.4g}")
         model = NeuSModel(cfg, background=masks is None)
         source = f"images ({'with' if masks is not None else 'without'} masks)"
         print(f"nefii geometry: NeuS on {len(scene)} views {scene.width}x{scene.height} from {scene.root}, "
@@ -151,7 +153,7 @@ def _geometry(args: argparse.Namespace, cfg: GeometryConfig, device: torch.devic
         mesh_out.export(tmp)
     stats = {"steps": trainer.step, "steps_this_session": trainer.step - step0, "wall_s_this_session": time.time() - t0,
              "source": source,
-             "radiance_unit": objective.unit if isinstance(objective, ImageObjective) else 1.0,
+             "radiance_unit": unit,
              "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
              "mesh_vertices": len(mesh_out.vertices), "mesh_faces": len(mesh_out.faces)}
     write_text_atomic(out / "geometry_stats.json", json.dumps(stats, indent=2) + "\n")

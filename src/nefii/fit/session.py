@@ -19,6 +19,7 @@ from ..errors import InputError
 from ..io.checkpoints import LoadedCheckpoint
 from ..raycast import MeshGeometry
 from ..raycast.base import Geometry
+from .backdrop import without_backdrop
 from .build import build_model
 from .config import FitConfig
 from .distributed import DistContext
@@ -27,7 +28,6 @@ from .geometry_source import GeometrySource, adapt_to_source, resolve_source
 from .light_init import SGInit, estimate_light, set_sg_parameters, sg_from_light, sky_sun
 from .model import NeFIIModel
 from .path_trace import SurfacePoints
-from .backdrop import without_backdrop
 from .pixels import Pixels, background_clipping, first_hits
 from .trainer import Trainer
 from .units import radiance_unit
