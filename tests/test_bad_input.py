@@ -117,6 +117,15 @@ def setup_inverted_winding(scene: Path, tmp: Path) -> Path:
     return root
 
 
+def setup_y_up_mesh(scene: Path, tmp: Path) -> Path:
+    """The scene's mesh written as a glTF holds it: Y up, where the cameras' world is Z up."""
+    root = _scene_copy(scene, tmp)
+    mesh = trimesh.load(root / "mesh.ply", force="mesh", process=False)
+    x, y, z = np.asarray(mesh.vertices).T
+    trimesh.Trimesh(np.stack([x, z, -y], -1), mesh.faces, process=False).export(root / "mesh.ply")
+    return root
+
+
 def setup_huge_cameras(scene: Path, tmp: Path) -> Path:
     meta = json.loads((scene / "transforms_test.json").read_text())
     meta.update(w=1_000_000, h=1_000_000, fl_x=1e6, fl_y=1e6, cx=5e5, cy=5e5)
@@ -204,6 +213,9 @@ CASES = [
          ("mesh.ply", "face 3 refers to vertex"), setup_face_out_of_range),
     Case("mesh wound inside out", "fit {bad} --out {tmp}/out --preset tiny --quiet", 2,
          ("mesh.ply", "see the back of its triangles", "invert"), setup_inverted_winding),
+    Case("mesh Y up, cameras Z up", "fit {bad} --out {tmp}/out --preset tiny --quiet", 2,
+         ("mesh.ply", "not where the images see the object", "turned +90 degrees about x they agree on 100%",
+          "Y-up"), setup_y_up_mesh),
     # ---- geometry settings
     Case("geometry samples=-1", GEO + " --set samples=-1", 2, ("samples", "below 2")),
     Case("geometry mesh_resolution", GEO + " --set mesh_resolution=100000", 2, ("mesh_resolution", "above 2048")),
@@ -311,6 +323,19 @@ def test_a_mesh_partly_wound_inside_out_is_a_warning(scene, tmp_path):
     assert any("mixed.ply" in w and "back of its triangles" in w for w in r.warnings), r.err
     r = _fit_one_step(scene, tmp_path / "out2")
     assert r.rc == 0 and not any("back of its triangles" in w for w in r.warnings), r.err
+
+
+def test_a_mesh_the_masks_partly_disagree_with_is_a_warning(scene, tmp_path):
+    """The mesh shifted by an eighth of its diagonal: the fit runs, and says how far masks and mesh agree (the
+    scene's own mesh agrees without a word, above)."""
+    mesh = trimesh.load(scene / "mesh.ply", force="mesh", process=False)
+    mesh.apply_translation((0.3, 0.0, 0.0))
+    mesh.export(tmp_path / "shifted.ply")
+    r = _fit_one_step(scene, tmp_path / "out", "--mesh", str(tmp_path / "shifted.ply"))
+    assert r.rc == 0, r.err
+    assert any("shifted.ply" in w and "masks and the mesh agree on 84%" in w for w in r.warnings), r.err
+    r = _fit_one_step(scene, tmp_path / "out2")
+    assert r.rc == 0 and not any("masks and the mesh agree" in w for w in r.warnings), r.err
 
 
 def test_every_preset_is_valid_and_a_typo_is_named():

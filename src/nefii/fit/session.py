@@ -19,6 +19,7 @@ from ..errors import InputError
 from ..io.checkpoints import LoadedCheckpoint
 from ..raycast import MeshGeometry
 from ..raycast.base import Geometry
+from .alignment import check_alignment
 from .backdrop import without_backdrop
 from .build import build_model
 from .config import FitConfig
@@ -155,6 +156,7 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     check_in_view(scene, box, source)
     pixels = first_hits(scene, geometry).to(device)
     check_winding(pixels.points, source)
+    check_alignment(scene, geometry, source.mesh)
     seen_background = len(pixels.bg_dirs)
     pixels, backdrop = without_backdrop(pixels)
     clipped = 0 if scene.clipped is None else int(scene.clipped.sum())

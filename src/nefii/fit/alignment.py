@@ -1,0 +1,100 @@
+"""Does the given mesh sit where the images' masks say the object is?
+
+A mesh in another frame than the cameras (a glTF is Y-up, a Blender render's cameras Z-up), in other units or
+off by a shift fits without complaint: :func:`nefii.fit.pixels.first_hits` keeps only the pixels where mask and
+mesh agree, and the material and light are then fitted to the wrong pixels. With masks, the agreement is measured
+away from the masks' edges (where a pixel's centre ray and its alpha may disagree by a sub-pixel) and a mesh that
+disagrees is refused, naming a rotation about x that would make it agree when there is one.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..data.scene import SceneData
+from ..errors import InputError
+from ..raycast import MeshGeometry, Rays
+from ..raycast.base import Geometry
+from .pixels import view_rays
+
+AGREEMENT = (0.9, 0.6)
+"""intersection over union of masks and mesh, away from the masks' edges, below which the mesh is reported:
+a warning, an error. The built-in scenes' own meshes score 1.000; a mesh turned a quarter about x 0.3-0.5,
+scaled by 1.05 about 0.9, shifted by 2% of its diagonal 0.9-0.95 (docs/experiments.md, 2026-11-30)"""
+
+
+@dataclass(frozen=True)
+class Agreement:
+    """Pixel counts over all views, masks' edge pixels left out."""
+
+    inside: int
+    """mask interior pixels (the mask and its 8 neighbours say object)"""
+    inside_hit: int
+    """... of which the mesh covers"""
+    outside_hit: int
+    """mask exterior pixels (the mask and its 8 neighbours say background) that the mesh covers"""
+
+    @property
+    def iou(self) -> float:
+        union = self.inside + self.outside_hit
+        return self.inside_hit / union if union else 1.0
+
+
+def _interiors(mask: Tensor) -> tuple[Tensor, Tensor]:
+    """``(H, W)`` bool -> where the 3 x 3 neighbourhood is all object, all background (borders count as both)."""
+    m = mask.float()[None, None]
+    obj = -F.max_pool2d(-m, 3, stride=1, padding=1)[0, 0] > 0.5
+    bg = F.max_pool2d(m, 3, stride=1, padding=1)[0, 0] < 0.5
+    return obj, bg
+
+
+def mask_agreement(scene: SceneData, geometry: Geometry) -> Agreement:
+    """How well ``geometry``'s first hits cover ``scene``'s masks (which must be given)."""
+    assert scene.masks is not None
+    inside = inside_hit = outside_hit = 0
+    for v in range(len(scene)):
+        o, d = view_rays(scene, v)
+        hit = geometry.intersect(Rays(o.reshape(-1, 3), d.reshape(-1, 3))).valid.reshape(scene.height, scene.width)
+        obj, bg = _interiors(scene.masks[v])
+        inside += int(obj.sum())
+        inside_hit += int((obj & hit.cpu()).sum())
+        outside_hit += int((bg & hit.cpu()).sum())
+    return Agreement(inside, inside_hit, outside_hit)
+
+
+def _turned(mesh: MeshGeometry, degrees: int) -> MeshGeometry:
+    """``mesh`` turned about the x axis (+90: a Y-up file's up onto +z)."""
+    c, s = round(math.cos(math.radians(degrees))), round(math.sin(math.radians(degrees)))
+    turn = np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=np.float64)
+    return MeshGeometry(np.asarray(mesh.vertices, np.float64) @ turn.T, np.asarray(mesh.faces), threads=mesh.threads)
+
+
+def check_alignment(scene: SceneData, geometry: Geometry, mesh_path: Path) -> Agreement | None:
+    """Refuse (InputError naming ``mesh_path``) a mesh that the masks disagree with, warn where they partly do;
+    None where the scene has no masks or the geometry is not a triangle mesh (an SDF from ``nefii geometry`` was
+    made from these masks)."""
+    if scene.masks is None or not isinstance(geometry, MeshGeometry):
+        return None
+    a = mask_agreement(scene, geometry)
+    what = (f"the masks and the mesh agree on {a.iou:.0%} of the pixels (intersection over union away from the "
+            f"masks' edges; {1 - a.inside_hit / max(a.inside, 1):.0%} of the masks' interior is missed)")
+    if a.iou < AGREEMENT[1]:
+        turns = {deg: mask_agreement(scene, _turned(geometry, deg)).iou for deg in (90, -90, 180)}
+        deg, best = max(turns.items(), key=lambda kv: kv[1])
+        hint = "is it in the cameras' world and units?"
+        if best >= AGREEMENT[0]:
+            hint = (f"turned {deg:+d} degrees about x they agree on {best:.0%}"
+                    + (" (a Y-up file, such as a glTF, into the cameras' Z-up world)" if deg == 90 else "")
+                    + f": trimesh's `mesh.apply_transform(trimesh.transformations.rotation_matrix("
+                      f"{math.radians(deg):.4f}, [1, 0, 0]))` turns it")
+        raise InputError(mesh_path, f"{what}: the mesh is not where the images see the object; {hint}")
+    if a.iou < AGREEMENT[0]:
+        warnings.warn(f"{mesh_path}: {what}: is the mesh aligned with the cameras?", stacklevel=2)
+    return a
