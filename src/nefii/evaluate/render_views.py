@@ -16,7 +16,7 @@ import math
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from jaxtyping import Bool, Float, Int
@@ -69,17 +69,40 @@ def subpixel_samples(num_pixels: int, k: int, generator: torch.Generator | None,
 
 
 @dataclass(frozen=True)
+class _Layers:
+    """What rays saw, one row per ray (a chunk's) or summed over each pixel's rays (a view's); linear values."""
+
+    rgb: Float[Tensor, "N 3"]
+    specular: Float[Tensor, "N 3"]
+    diffuse: Float[Tensor, "N 3"]
+    albedo: Float[Tensor, "N 3"]
+    normal: Float[Tensor, "N 3"]
+    cache: Float[Tensor, "N 3"]
+    roughness: Float[Tensor, " N"]
+
+    @staticmethod
+    def zeros(n: int, device: torch.device) -> "_Layers":
+        return _Layers(*(torch.zeros((n, 3) if f.name != "roughness" else (n,), device=device)
+                         for f in fields(_Layers)))
+
+    def add_at(self, index: Int[Tensor, " R"], rows: "_Layers") -> None:
+        """Sum ``rows`` (one per ray) into the rows ``index`` of these, in place."""
+        for f in fields(_Layers):
+            getattr(self, f.name).index_add_(0, index, getattr(rows, f.name))
+
+    def divided(self, count: Float[Tensor, " N"]) -> "_Layers":
+        """Each row over ``count`` (at least 1): a sum's mean."""
+        inv = 1.0 / count.clamp_min(1.0)
+        return _Layers(*(v * (inv.unsqueeze(-1) if v.dim() == 2 else inv)
+                         for v in (getattr(self, f.name) for f in fields(_Layers))))
+
+
+@dataclass(frozen=True)
 class _ChunkSums:
     """One chunk of sub-pixel rays: each ray's pixel and what it saw (summed into the view in chunk order)."""
 
     pixel: Int[Tensor, " R"]
-    rgb: Float[Tensor, "R 3"]
-    specular: Float[Tensor, "R 3"]
-    diffuse: Float[Tensor, "R 3"]
-    albedo: Float[Tensor, "R 3"]
-    normal: Float[Tensor, "R 3"]
-    cache: Float[Tensor, "R 3"]
-    roughness: Float[Tensor, " R"]
+    seen: _Layers
 
 
 @torch.no_grad()   # grad mode is per thread: the worker threads need their own
@@ -93,20 +116,19 @@ def _render_chunk(model: NeFIIModel, geometry: Geometry, hit: SurfaceHit, d: Ten
     cache = model.cache(pts.position, pts.normal, pts.wo)
     if per_ray == 0:
         zero = torch.zeros_like(cache)
-        return _ChunkSums(pixel[c], zero, zero, zero, material.albedo, pts.normal, cache, material.roughness)
+        return _ChunkSums(pixel[c], _Layers(zero, zero, zero, material.albedo, pts.normal, cache, material.roughness))
     g = torch.Generator(device=d.device).manual_seed(seed)
     traced = path_trace(model, geometry, pts, material, per_ray, g, transport)
-    return _ChunkSums(pixel[c], traced.radiance.rgb, traced.radiance.specular, traced.radiance.diffuse,
-                      material.albedo, pts.normal, cache, material.roughness)
+    return _ChunkSums(pixel[c], _Layers(traced.radiance.rgb, traced.radiance.specular, traced.radiance.diffuse,
+                                        material.albedo, pts.normal, cache, material.roughness))
 
 
 @dataclass(frozen=True)
 class _Pass:
     """One set of sub-pixel rays through every pixel of a view and their sums per pixel."""
 
-    sums: dict[str, Tensor]
-    """``rgb``, ``specular``, ``diffuse``, ``albedo``, ``normal``, ``cache`` ``(P, 3)`` and ``roughness``
-    ``(P,)``, summed over each pixel's rays that hit"""
+    sums: _Layers
+    """``(P, ...)``: summed over each pixel's rays that hit"""
     hits: Float[Tensor, " P"]
     """rays of the pixel that hit the geometry"""
     centre_dirs: Float[Tensor, "P 3"]
@@ -163,30 +185,23 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
                 results = list(pool.map(render, range(len(chunks))))
         else:
             results = [render(i) for i in range(len(chunks))]
-        sums = {name: torch.zeros(n_px, 3, device=device) for name in ("rgb", "specular", "diffuse", "albedo",
-                                                                     "normal", "cache")}
-        sums["roughness"] = torch.zeros(n_px, device=device)
+        sums = _Layers.zeros(n_px, device)
         for r in results:
-            for name, value in sums.items():
-                value.index_add_(0, r.pixel, getattr(r, name))
+            sums.add_at(r.pixel, r.seen)
         hits = torch.zeros(n_px, device=device).index_add_(0, pixel, hit.valid.float())
         return _Pass(sums, hits, d.reshape(n_px, grid * grid, 3).mean(1))
 
     layers = one_pass(k_material, per_ray if k == k_material else 0)
     colour = layers if k == k_material else one_pass(k, per_ray)
 
-    def mean(p: _Pass, name: str) -> Tensor:
-        v = p.sums[name]
-        inv = 1.0 / p.hits.clamp_min(1.0)
-        return v * (inv.unsqueeze(-1) if v.dim() == 2 else inv)
-
+    seen, material = colour.sums.divided(colour.hits), layers.sums.divided(layers.hits)
     on = colour.hits > 0
-    rgb = torch.where(on.unsqueeze(-1), mean(colour, "rgb"), model.env.radiance(normalize(colour.centre_dirs)))
-    normal = mean(layers, "normal")
+    rgb = torch.where(on.unsqueeze(-1), seen.rgb, model.env.radiance(normalize(colour.centre_dirs)))
     shape3 = (H, W, 3)
-    return ViewPrediction(rgb=rgb.reshape(shape3), specular=mean(colour, "specular").reshape(shape3),
-                          diffuse=mean(colour, "diffuse").reshape(shape3), albedo=mean(layers, "albedo").reshape(shape3),
-                          roughness=mean(layers, "roughness").reshape(H, W),
-                          normal=torch.where((layers.hits > 0).unsqueeze(-1), normalize(normal), normal).reshape(shape3),
-                          cache=mean(layers, "cache").reshape(shape3),
+    return ViewPrediction(rgb=rgb.reshape(shape3), specular=seen.specular.reshape(shape3),
+                          diffuse=seen.diffuse.reshape(shape3), albedo=material.albedo.reshape(shape3),
+                          roughness=material.roughness.reshape(H, W),
+                          normal=torch.where((layers.hits > 0).unsqueeze(-1), normalize(material.normal),
+                                             material.normal).reshape(shape3),
+                          cache=material.cache.reshape(shape3),
                           mask=(layers.hits >= 0.5 * k_material * k_material).reshape(H, W))
