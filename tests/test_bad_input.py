@@ -307,7 +307,7 @@ def test_a_mesh_far_from_every_camera_is_a_warning_and_unseen_an_error(scene, tm
     mesh.export(tmp_path / "far.ply")
     r = _fit_one_step(scene, tmp_path / "out", "--mesh", str(tmp_path / "far.ply"))
     assert any("far.ply" in w and "nearest camera" in w for w in r.warnings), r.err
-    assert_one_line_error(r, "no training pixel sees the geometry")
+    assert_one_line_error(r, "far.ply", "the mesh is not where the images see the object")
 
 
 def test_a_mesh_partly_wound_inside_out_is_a_warning(scene, tmp_path):

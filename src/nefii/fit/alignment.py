@@ -57,14 +57,15 @@ def _interiors(mask: Tensor) -> tuple[Tensor, Tensor]:
     return obj, bg
 
 
-def mask_agreement(scene: SceneData, geometry: Geometry) -> Agreement:
-    """How well ``geometry``'s first hits cover ``scene``'s masks (which must be given)."""
+def mask_agreement(scene: SceneData, geometry: Geometry, inverted: bool = False) -> Agreement:
+    """How well ``geometry``'s first hits cover ``scene``'s masks (which must be given; ``inverted``: their
+    complements)."""
     assert scene.masks is not None
     inside = inside_hit = outside_hit = 0
     for v in range(len(scene)):
         o, d = view_rays(scene, v)
         hit = geometry.intersect(Rays(o.reshape(-1, 3), d.reshape(-1, 3))).valid.reshape(scene.height, scene.width)
-        obj, bg = _interiors(scene.masks[v])
+        obj, bg = _interiors(scene.masks[v] != inverted)
         inside += int(obj.sum())
         inside_hit += int((obj & hit.cpu()).sum())
         outside_hit += int((bg & hit.cpu()).sum())
@@ -88,6 +89,11 @@ def check_alignment(scene: SceneData, geometry: Geometry, mesh_path: Path) -> Ag
     what = (f"the masks and the mesh agree on {a.iou:.0%} of the pixels (intersection over union away from the "
             f"masks' edges; {1 - a.inside_hit / max(a.inside, 1):.0%} of the masks' interior is missed)")
     if a.iou < AGREEMENT[1]:
+        inverted = mask_agreement(scene, geometry, inverted=True).iou
+        if inverted >= AGREEMENT[0]:
+            raise InputError(scene.root, f"the masks and {mesh_path.name} agree on {a.iou:.0%} of the pixels, and on "
+                                         f"{inverted:.0%} with the masks inverted: are the masks white on the "
+                                         "background and black on the object?")
         turns = {deg: mask_agreement(scene, _turned(geometry, deg)).iou for deg in (90, -90, 180)}
         deg, best = max(turns.items(), key=lambda kv: kv[1])
         hint = "is it in the cameras' world and units?"

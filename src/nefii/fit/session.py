@@ -154,9 +154,9 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     say(f"{len(scene)} views {scene.width}x{scene.height} from {scene.root} ({scene.format}); "
         f"{describe_geometry(source, geometry, cfg, features.dim if features else 0)}")
     check_in_view(scene, box, source)
+    check_alignment(scene, geometry, source.mesh)
     pixels = first_hits(scene, geometry).to(device)
     check_winding(pixels.points, source)
-    check_alignment(scene, geometry, source.mesh)
     seen_background = len(pixels.bg_dirs)
     pixels, backdrop = without_backdrop(pixels)
     clipped = 0 if scene.clipped is None else int(scene.clipped.sum())
