@@ -36,7 +36,7 @@ def test_a_mesh_turned_about_x_is_refused_with_the_turn_back(scene):
     x, y, z = mesh.vertices.T
     y_up = MeshGeometry(np.stack([x, z, -y], -1), mesh.faces, threads=1)
     assert mask_agreement(data, y_up).iou < AGREEMENT[1]
-    with pytest.raises(InputError, match=r"turned \+90 degrees about x they agree on 100%"):
+    with pytest.raises(InputError, match=r"turned \+90 degrees about x they agree on 100.0%"):
         check_alignment(data, y_up, data.root / "y_up.glb")
 
 

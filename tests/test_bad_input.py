@@ -214,7 +214,7 @@ CASES = [
     Case("mesh wound inside out", "fit {bad} --out {tmp}/out --preset tiny --quiet", 2,
          ("mesh.ply", "see the back of its triangles", "invert"), setup_inverted_winding),
     Case("mesh Y up, cameras Z up", "fit {bad} --out {tmp}/out --preset tiny --quiet", 2,
-         ("mesh.ply", "not where the images see the object", "turned +90 degrees about x they agree on 100%",
+         ("mesh.ply", "not where the images see the object", "turned +90 degrees about x they agree on 100.0%",
           "Y-up"), setup_y_up_mesh),
     # ---- geometry settings
     Case("geometry samples=-1", GEO + " --set samples=-1", 2, ("samples", "below 2")),
@@ -333,7 +333,7 @@ def test_a_mesh_the_masks_partly_disagree_with_is_a_warning(scene, tmp_path):
     mesh.export(tmp_path / "shifted.ply")
     r = _fit_one_step(scene, tmp_path / "out", "--mesh", str(tmp_path / "shifted.ply"))
     assert r.rc == 0, r.err
-    assert any("shifted.ply" in w and "masks and the mesh agree on 84%" in w for w in r.warnings), r.err
+    assert any("shifted.ply" in w and "masks and the mesh agree on 84.4%" in w for w in r.warnings), r.err
     r = _fit_one_step(scene, tmp_path / "out2")
     assert r.rc == 0 and not any("masks and the mesh agree" in w for w in r.warnings), r.err
 

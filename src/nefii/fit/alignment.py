@@ -86,19 +86,19 @@ def check_alignment(scene: SceneData, geometry: Geometry, mesh_path: Path) -> Ag
     if scene.masks is None or not isinstance(geometry, MeshGeometry):
         return None
     a = mask_agreement(scene, geometry)
-    what = (f"the masks and the mesh agree on {a.iou:.0%} of the pixels (intersection over union away from the "
+    what = (f"the masks and the mesh agree on {a.iou:.1%} of the pixels (intersection over union away from the "
             f"masks' edges; {1 - a.inside_hit / max(a.inside, 1):.0%} of the masks' interior is missed)")
     if a.iou < AGREEMENT[1]:
         inverted = mask_agreement(scene, geometry, inverted=True).iou
         if inverted >= AGREEMENT[0]:
-            raise InputError(scene.root, f"the masks and {mesh_path.name} agree on {a.iou:.0%} of the pixels, and on "
-                                         f"{inverted:.0%} with the masks inverted: are the masks white on the "
+            raise InputError(scene.root, f"the masks and {mesh_path.name} agree on {a.iou:.1%} of the pixels, and on "
+                                         f"{inverted:.1%} with the masks inverted: are the masks white on the "
                                          "background and black on the object?")
         turns = {deg: mask_agreement(scene, _turned(geometry, deg)).iou for deg in (90, -90, 180)}
         deg, best = max(turns.items(), key=lambda kv: kv[1])
         hint = "is it in the cameras' world and units?"
         if best >= AGREEMENT[0]:
-            hint = (f"turned {deg:+d} degrees about x they agree on {best:.0%}"
+            hint = (f"turned {deg:+d} degrees about x they agree on {best:.1%}"
                     + (" (a Y-up file, such as a glTF, into the cameras' Z-up world)" if deg == 90 else "")
                     + f": trimesh's `mesh.apply_transform(trimesh.transformations.rotation_matrix("
                       f"{math.radians(deg):.4f}, [1, 0, 0]))` turns it")
