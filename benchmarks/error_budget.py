@@ -2,7 +2,7 @@
 
     python -m benchmarks.error_budget run SCENE_DIR ROW --seed S --out DIR [--steps N] [--eval-spp 32] [--set k=v]
     python -m benchmarks.error_budget adopt RUN SCENE_DIR ROW --seed S --out DIR   # a run made elsewhere as a row
-    python -m benchmarks.error_budget table RUNS_DIR       # -> benchmarks/results/error_budget.md
+    python -m benchmarks.error_budget table SOURCE...      # -> benchmarks/results/error_budget.md (+ _rows.jsonl)
 
 Rows (each a fit of the ``cpu`` preset, scored by ``nefii.evaluate.run.evaluate_run`` on the test views):
 
@@ -65,7 +65,7 @@ from nefii.relight.render import render_relit
 from nefii.render.brdf import ROUGHNESS_MIN, ROUGHNESS_RANGE, BRDFModel, Material, roughness_from_logit
 from nefii.render.equirect import pixel_directions
 
-from .common import code_version, machine, stamp, write_results
+from .common import RESULTS, code_version, machine, stamp, write_results
 
 ROWS = ("truth_point", "truth_filtered", "floor", "drift", "roughness_alone", "light_known", "albedo_known",
         "material_known", "indirect_known", "full", "constant")
@@ -333,10 +333,26 @@ def drift_figures(model: NeFIIModel, scene, geometry) -> dict:
 
 # --------------------------------------------------------------------------- table
 
-def table(runs: Path, where: str, code: str | None = None) -> None:
+ROWS_FILE = "error_budget_rows.jsonl"
+"""every row's scores.json the table was made from, one JSON object a line, kept beside it in results/: the runs
+themselves live in a cache that does not last, and a later session adds its rows (a second seed, say) to these"""
+
+
+def read_rows(sources: list[Path]) -> list[dict]:
+    """The rows' scores: each source a runs folder (``<scene>/<row>_s<seed>/scores.json``) or a rows file; a later
+    source's (scene, row, seed) replaces an earlier one's."""
+    rows: dict[tuple[str, str, int], dict] = {}
+    for src in sources:
+        blobs = ([json.loads(line) for line in src.read_text().splitlines() if line.strip()] if src.is_file()
+                 else [json.loads(f.read_text()) for f in sorted(src.glob("*/*/scores.json"))])
+        rows.update({(b["scene"], b["row"], b["seed"]): b for b in blobs})
+    return [rows[k] for k in sorted(rows)]
+
+
+def table(sources: list[Path], where: str, code: str | None = None) -> None:
+    rows = read_rows(sources)
     found: dict[tuple[str, str], list[dict]] = {}
-    for f in sorted(runs.glob("*/*/scores.json")):
-        blob = json.loads(f.read_text())
+    for blob in rows:
         found.setdefault((blob["scene"], blob["row"]), []).append(blob)
     scenes = sorted({s for s, _ in found})
 
@@ -369,6 +385,7 @@ def table(runs: Path, where: str, code: str | None = None) -> None:
                          f"| {', '.join(str(b['seed']) for b in blobs)} |")
         lines.append("")
     write_results("error_budget.md", lines)
+    write_text_atomic(RESULTS / ROWS_FILE, "".join(json.dumps(b, sort_keys=True) + "\n" for b in rows))
 
 
 def row_folder(root: Path, data: Path, row: str, seed: int) -> Path:
@@ -408,7 +425,8 @@ def main() -> None:
     a.add_argument("--seed", type=int, required=True)
     a.add_argument("--out", type=Path, required=True)
     t = sub.add_parser("table")
-    t.add_argument("runs", type=Path)
+    t.add_argument("runs", type=Path, nargs="+",
+                   help="runs folders and rows files (results/error_budget_rows.jsonl); later ones win")
     t.add_argument("--where", default="", help="where and how the runs ran, for the record")
     t.add_argument("--code", default=None, help="the commit the runs were made at (default: the current one)")
     args = ap.parse_args()

@@ -79,3 +79,32 @@ def test_adopt_records_a_finished_run_as_a_row(tmp_path, monkeypatch):
     error_budget.main()
     blob = json.loads((tmp_path / "rows" / "scene_x" / "full_s1" / "scores.json").read_text())
     assert blob["scores"] == masked and blob["seed"] == 1 and blob["row"] == "full" and blob["source"] == str(run)
+
+
+def test_the_table_keeps_its_rows_and_reads_them_back_with_new_ones(tmp_path, monkeypatch):
+    """``table`` writes every row it read to a rows file beside the table; given that file and a runs folder, a
+    row of the folder replaces the file's row of the same scene, row and seed, and the others stay."""
+    import json
+
+    from benchmarks import common, error_budget
+
+    monkeypatch.setattr(common, "RESULTS", tmp_path / "results")
+    monkeypatch.setattr(error_budget, "RESULTS", tmp_path / "results")
+
+    def put(root, row, seed, psnr):
+        error_budget.save_row(error_budget.row_folder(root, tmp_path / "scene_x", row, seed), tmp_path / "scene_x",
+                              row, seed, {"albedo_psnr": psnr, "roughness_mse": 0.02})
+
+    put(tmp_path / "old", "full", 0, 27.0)
+    put(tmp_path / "old", "light_known", 0, 30.0)
+    error_budget.table([tmp_path / "old"], "here")
+    rows_file = tmp_path / "results" / error_budget.ROWS_FILE
+    assert len(rows_file.read_text().splitlines()) == 2
+    put(tmp_path / "new", "full", 0, 28.0)
+    put(tmp_path / "new", "full", 1, 29.0)
+    error_budget.table([rows_file, tmp_path / "new"], "here")
+    rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
+    assert {(r["row"], r["seed"]): r["scores"]["albedo_psnr"] for r in rows} == {
+        ("full", 0): 28.0, ("full", 1): 29.0, ("light_known", 0): 30.0}
+    md = (tmp_path / "results" / "error_budget.md").read_text()
+    assert "| full | 28.50 ± 0.50 |" in md and "| light_known | 30.00 (1 seed) |" in md
