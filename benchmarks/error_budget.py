@@ -361,7 +361,7 @@ def table(sources: list[Path], where: str, code: str | None = None) -> None:
         if not vals:
             return "-"
         m = float(np.mean(vals))
-        return (fmt.format(m) + (f" ± {fmt.format(np.ptp(vals) / 2)}" if len(vals) > 1 else "")) + \
+        return (fmt.format(m) + (f" ± {fmt.replace('+', '').format(np.ptp(vals) / 2)}" if len(vals) > 1 else "")) + \
             ("" if len(vals) > 1 else " (1 seed)")
 
     lines = [f"# error_budget ({stamp()}, runs at code {code or code_version()})", "", f"Table written on: {machine()}. "
