@@ -194,7 +194,8 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
     layers = one_pass(k_material, per_ray if k == k_material else 0)
     colour = layers if k == k_material else one_pass(k, per_ray)
 
-    seen, material = colour.sums.divided(colour.hits), layers.sums.divided(layers.hits)
+    material = layers.sums.divided(layers.hits)
+    seen = material if colour is layers else colour.sums.divided(colour.hits)
     on = colour.hits > 0
     rgb = torch.where(on.unsqueeze(-1), seen.rgb, model.env.radiance(normalize(colour.centre_dirs)))
     shape3 = (H, W, 3)

@@ -15,11 +15,10 @@ from ..data import load_scene
 from ..data.downscale import training_images
 from ..data.fingerprint import DataFingerprint, fingerprint, require_same
 from ..data.scene import SceneData
-from ..errors import InputError
 from ..io.checkpoints import LoadedCheckpoint
 from ..raycast import MeshGeometry
 from ..raycast.base import Geometry
-from .alignment import check_alignment
+from .alignment import check_alignment, check_winding
 from .backdrop import without_backdrop
 from .build import build_model
 from .config import FitConfig
@@ -28,7 +27,6 @@ from .exposure import metered_log_gains, without_gains
 from .geometry_source import GeometrySource, adapt_to_source, resolve_source
 from .light_init import SGInit, estimate_light, set_sg_parameters, sg_from_light, sky_sun
 from .model import NeFIIModel
-from .path_trace import SurfacePoints
 from .pixels import Pixels, background_clipping, first_hits
 from .trainer import Trainer
 from .units import radiance_unit
@@ -99,27 +97,6 @@ def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg:
 FAR = 100.0
 """a geometry more than this many of its diagonals from every camera is suspicious (other units, another
 world)"""
-
-
-BACK_FACING = (0.05, 0.5)
-"""shares of the training pixels whose first hit sees the back of its triangle beyond which the mesh's winding
-is reported: mixed (a warning), inverted (an error); the built-in meshes show 0"""
-
-
-def check_winding(points: SurfacePoints, source: GeometrySource) -> None:
-    """Refuse a mesh whose triangles face away from the cameras (normals pointing into the object): shading reads
-    their backs, and the corner's mesh with its winding reversed fitted to 11.75 dB albedo and roughness MSE 0.245
-    without a word (docs/experiments.md, 2026-11-30); warn where only part of it does."""
-    if len(points) == 0:
-        return
-    back = float(((points.wo * points.geometric_normal).sum(-1) < 0).float().mean())
-    hint = "normals must point out of the object, as counter-clockwise winding seen from outside makes them"
-    if back > BACK_FACING[1]:
-        raise InputError(source.mesh, f"{back:.0%} of the training pixels see the back of its triangles: its faces "
-                                      f"wind the wrong way ({hint}; trimesh's `mesh.invert()` flips them)")
-    if back > BACK_FACING[0]:
-        warnings.warn(f"{source.mesh}: {back:.0%} of the training pixels see the back of its triangles: is its winding "
-                      f"consistent? ({hint})", stacklevel=2)
 
 
 def check_in_view(scene: SceneData, box: tuple[Tensor, Tensor], source: GeometrySource) -> None:
