@@ -306,7 +306,7 @@ def fit_row(data: Path, row: str, seed: int, out: Path, steps: int | None, drift
         model.cache.radiance_unit.mul_(unit)
     fitted = FittedRun(out, cfg, model, data, session.source.mesh, session.source, session.box)
     test = load_scene(data, "test")
-    means = evaluate_run(fitted, test, out / "eval", eval_spp, torch.Generator(device=device).manual_seed(0))["masked"]
+    means = evaluate_run(fitted, test, out / "eval", eval_spp, 0)["masked"]
     means["fit_s"] = fit_s
     if row in ("drift", "roughness_alone"):
         means.update(drift_figures(model, test, geometry))

@@ -1,16 +1,21 @@
-"""``nefii eval RUN``: render every test view and score it as the paper's Table 1 does."""
+"""``nefii eval RUN``: render every test view and score it as the paper's Table 1 does.
+
+Each view is kept as it is scored: an eval stopped part way (Ctrl-C, a lost session) goes on from the views it
+had scored when run again with the same settings."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
-import torch
 from tqdm import tqdm
 
 from ..data import load_scene
+from ..errors import InputError
 from ..data.downscale import downscaled
 from ..evaluate.run import evaluate_run
 from ..fit.outputs import load_run
+from ..io.lock import RunLock
 from .common import add_threads_flag, pick_device, render_flags, set_threads
 
 
@@ -22,6 +27,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="estimator samples per pixel; each draws one cosine, one GGX and one SG direction")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-views", type=int, default=0, metavar="N",
+                   help="score N test views spread evenly over the test split (default 0: all of them)")
     add_threads_flag(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -29,13 +36,22 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     render_flags(args)
+    if args.max_views < 0:
+        raise InputError(None, f"--max-views: {args.max_views} is negative (0 scores every test view)")
     device = pick_device(args.device)
     fitted = load_run(args.run, device)
     set_threads(fitted.config.threads if args.threads is None else args.threads)
     scene = downscaled(load_scene(args.data or fitted.data, "test"), fitted.config.max_image_side)[0]
-    g = torch.Generator(device=device).manual_seed(args.seed)
-    evaluate_run(fitted, scene, args.run / "eval", args.spp, g,
-                 progress=lambda it: tqdm(it, desc="eval", unit="view", disable=args.quiet))
+    lock = RunLock(args.run, "eval")            # one writer at a time: two evals would share their partial views
+    lock.acquire(warn=lambda line: print(f"nefii eval: warning: {line}"))
+    try:
+        evaluate_run(fitted, scene, args.run / "eval", args.spp, args.seed, args.max_views,
+                     progress=lambda it: tqdm(it, desc="eval", unit="view", disable=args.quiet), say=print)
+    except KeyboardInterrupt:
+        print("nefii eval: the views scored so far are kept; the same command goes on from them", file=sys.stderr)
+        raise
+    finally:
+        lock.release()
     print((args.run / "eval" / "metrics.md").read_text())
     print(f"nefii eval: per-view EXRs and GT | ours | error grids in {args.run / 'eval'}")
     return 0

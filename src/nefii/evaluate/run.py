@@ -14,9 +14,9 @@ import torch
 from ..data.scene import SceneData
 from ..fit.outputs import ENVMAP_SIZE, FittedRun
 from ..fit.trainer import transport_of
-from ..io.atomic import atomic_dir
 from ..io.exr import write_exr
 from ..io.images import write_png
+from .partial import EvalKey, PartialEval, view_seed
 from .render_views import render_view
 from .outputs import tonemap_display, write_grid, write_metrics
 from .table1 import ViewArrays, mean_scores, view_scores
@@ -79,31 +79,57 @@ def finish_metrics(out: Path, views: list[dict], notes: dict[str, str]) -> dict[
     return means
 
 
+def spread_views(count: int, limit: int) -> list[int]:
+    """``limit`` of ``count`` views spread evenly from the first to the last (all of them when ``limit`` is 0
+    or not below ``count``)."""
+    if limit <= 0 or limit >= count:
+        return list(range(count))
+    return sorted(set(np.linspace(0, count - 1, limit).round().astype(int).tolist()))
+
+
 @torch.no_grad()
-def evaluate_run(fitted: FittedRun, scene: SceneData, out: Path, spp: int, generator: torch.Generator | None,
-                 progress: Callable[[Iterable[int]], Iterable[int]] = lambda it: it) -> dict[str, dict]:
-    """Render every view of ``scene`` (a test split) with ``fitted``'s model and the estimator it was trained
-    with, score it, and write ``out`` (metrics.json/md, per-view EXRs and grids, the recovered environment
-    beside the true one) atomically. Returns the mean scores per protocol."""
+def evaluate_run(fitted: FittedRun, scene: SceneData, out: Path, spp: int, seed: int, max_views: int = 0,
+                 progress: Callable[[Iterable[int]], Iterable[int]] = lambda it: it,
+                 say: Callable[[str], None] = lambda line: None) -> dict[str, dict]:
+    """Render the views of ``scene`` (a test split; ``max_views`` of them spread evenly, 0: all) with
+    ``fitted``'s model and the estimator it was trained with, score them, and write ``out`` (metrics.json/md,
+    per-view EXRs and grids, the recovered environment beside the true one) as a whole. Each view is committed
+    as it is scored (:mod:`nefii.evaluate.partial`): a rerun after an interruption scores only the views left,
+    and writes what an uninterrupted eval writes. Returns the mean scores per protocol."""
     geometry = fitted.open_geometry()
     transport = transport_of(fitted.config)
-    views = []
-    with atomic_dir(out) as tmp:
-        for v in progress(range(len(scene))):
-            pred = render_view(fitted.model, geometry, scene.cameras, v, spp, generator, transport)
-            p = ViewArrays(_np(pred.rgb), _np(pred.albedo), _np(pred.roughness), _np(pred.specular))
-            mask = eval_mask(scene, v, _np(pred.mask))
-            views.append(score_and_write_view(tmp, scene.indices[v], scene.names[v], p, ground_truth(scene, v), mask,
-                                              {"normal": _np(pred.normal), "cache": _np(pred.cache)}))
-        rec = _np(fitted.model.env.to_equirect(*ENVMAP_SIZE))
-        env_rows = [tonemap_display(rec)]
-        if scene.envmap is not None:
-            env_rows.insert(0, tonemap_display(_resize(_np(scene.envmap), ENVMAP_SIZE)))
-        write_png(tmp / "envmap_gt_vs_recovered.png", np.concatenate(env_rows, 0))
-        notes = {"albedo": "aligned per view and channel by median(gt/pred) over the mask, linear; scored in sRGB",
-                 "spp": f"{spp} estimator samples per pixel (x3 directions)",
-                 "views": f"{len(views)} test views from {scene.root}"}
-        return finish_metrics(tmp, views, notes)
+    device = next(fitted.model.parameters()).device
+    chosen = spread_views(len(scene), max_views)
+    partial = PartialEval(out, EvalKey.of(fitted.model, scene, [scene.indices[v] for v in chosen],
+                                          spp, seed, device.type))
+    done = {v: partial.scored(scene.indices[v]) for v in chosen}
+    resumed = sum(e is not None for e in done.values())
+    if resumed:
+        say(f"nefii eval: {resumed} of {len(chosen)} views already scored by an interrupted eval "
+            f"({partial.folder}); scoring the rest")
+    tmp = partial.folder
+    for v in progress([v for v in chosen if done[v] is None]):
+        index = scene.indices[v]
+        g = torch.Generator(device=device).manual_seed(view_seed(seed, index))
+        pred = render_view(fitted.model, geometry, scene.cameras, v, spp, g, transport)
+        p = ViewArrays(_np(pred.rgb), _np(pred.albedo), _np(pred.roughness), _np(pred.specular))
+        mask = eval_mask(scene, v, _np(pred.mask))
+        done[v] = score_and_write_view(tmp, index, scene.names[v], p, ground_truth(scene, v), mask,
+                                       {"normal": _np(pred.normal), "cache": _np(pred.cache)})
+        partial.commit(index, done[v])
+    rec = _np(fitted.model.env.to_equirect(*ENVMAP_SIZE))
+    env_rows = [tonemap_display(rec)]
+    if scene.envmap is not None:
+        env_rows.insert(0, tonemap_display(_resize(_np(scene.envmap), ENVMAP_SIZE)))
+    write_png(tmp / "envmap_gt_vs_recovered.png", np.concatenate(env_rows, 0))
+    shown = f"{len(chosen)} test views" if len(chosen) == len(scene) else \
+        f"{len(chosen)} of {len(scene)} test views, spread evenly (--max-views)"
+    notes = {"albedo": "aligned per view and channel by median(gt/pred) over the mask, linear; scored in sRGB",
+             "spp": f"{spp} estimator samples per pixel (x3 directions)",
+             "views": f"{shown} from {scene.root}"}
+    means = finish_metrics(tmp, [done[v] for v in chosen], notes)
+    partial.finish()
+    return means
 
 
 def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
