@@ -170,3 +170,31 @@ def test_relight_bad_input_is_one_line_exit_2_and_writes_nothing(scene, fitted, 
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "model.pt" in err[0]
     assert not out.exists()
+
+
+def test_an_interrupted_relight_goes_on_and_matches_an_uninterrupted_one(scene, fitted, tmp_path, monkeypatch, capsys):
+    import nefii.cli.relight as relight_cli
+    args = ["--envmap", str(scene / "relight" / "dusk.exr"), "--spp", "4", "--max-bounces", "2", "--quiet",
+            "--albedo-scale", "none"]
+    assert main(["relight", str(fitted), *args, "--out", str(tmp_path / "straight")]) == 0
+    real, calls = relight_cli.render_relit, []
+
+    def render_then_stop(*a, **kw):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(relight_cli, "render_relit", render_then_stop)
+    assert main(["relight", str(fitted), *args, "--out", str(tmp_path / "resumed")]) == 130
+    assert not (tmp_path / "resumed" / "dusk").exists()
+    assert [p.name for p in (tmp_path / "resumed" / ".dusk.partial").glob("[0-9].json")] == ["0.json"]
+    monkeypatch.setattr(relight_cli, "render_relit", real)
+    capsys.readouterr()
+    assert main(["relight", str(fitted), *args, "--out", str(tmp_path / "resumed")]) == 0
+    assert "1 of 2 views already rendered" in capsys.readouterr().out
+    assert not (tmp_path / "resumed" / ".dusk.partial").exists()
+    for name in ("0.exr", "1.exr", "0_grid.png", "1_grid.png", "render.json"):
+        assert (tmp_path / "resumed" / "dusk" / name).read_bytes() == (tmp_path / "straight" / "dusk" / name).read_bytes()
+    a, b = (json.loads((tmp_path / d / "metrics.json").read_text())["dusk"] for d in ("straight", "resumed"))
+    assert a == b

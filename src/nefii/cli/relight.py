@@ -14,11 +14,15 @@ is ground truth (``--envmap``: the dataset's relit views of the same name, map n
 each view's PSNR and SSIM and Stanford-ORB's PSNR-H and PSNR-L go into ``OUT/metrics.json`` under the
 folder's name (other entries kept), with ``K_grid.png`` (GT | relit | error x4); ``--dataset-lights`` adds
 ``dataset_lights``, the means over all its views (for Stanford-ORB: the benchmark's per-scene relighting score).
+Each folder appears whole when its last view is done; the views done before a stop are kept, and the same command
+goes on from them (every view renders from a seed of its own: a resumed folder is the uninterrupted one's).
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import sys
 import warnings
 from pathlib import Path
 
@@ -31,10 +35,11 @@ from ..data.downscale import downscaled
 from ..data.scene import Relit
 from ..errors import InputError
 from ..evaluate.outputs import write_grid
+from ..evaluate.partial import PartialViews, model_sha256, view_seed
 from ..evaluate.stanford_orb import PROTOCOL as ORB_PROTOCOL, relight_scores
 from ..fit.model import decode_material
 from ..fit.outputs import load_run
-from ..io.atomic import atomic_dir, write_text_atomic
+from ..io.atomic import write_text_atomic
 from ..io.exr import write_exr
 from ..io.images import write_png
 from ..relight.environment import load_environment
@@ -163,10 +168,16 @@ def run(args: argparse.Namespace) -> int:
     # ---- render every view of every set, score where there is ground truth
     settings = PathSettings(max_bounces=args.max_bounces, ray_offset=fitted.config.ray_offset)
     out_root = args.out or args.run / "relight"
-    g = torch.Generator(device=device).manual_seed(args.seed)
+    key = {"model": model_sha256(model), "rotate": args.rotate, "exposure": args.exposure, "spp": args.spp,
+           "max_bounces": args.max_bounces, "seed": args.seed, "albedo_scale": stated, "device": device.type}
     every = []
     for rs in sets:
-        scores = _render_set(rs, geometry, material, settings, g, out_root, args, stated, source)
+        try:
+            scores = _render_set(rs, geometry, material, settings, device, key, out_root, args, stated, source)
+        except KeyboardInterrupt:
+            print("nefii relight: the views rendered so far are kept; the same command goes on from them",
+                  file=sys.stderr)
+            raise
         every += scores
         if scores:
             entry = metrics_entry(scores, albedo_scale=stated, albedo_scale_source=source, spp=args.spp,
@@ -194,33 +205,58 @@ DATASET_LIGHTS = "dataset_lights"
 """the ``metrics.json`` entry of ``--dataset-lights``: means over all its views"""
 
 
-def _render_set(rs: RelightSet, geometry, material, settings: PathSettings, g: torch.Generator, out_root: Path,
-                args: argparse.Namespace, stated: list[float], source: str) -> list[dict]:
-    """Render ``rs`` into ``out_root / rs.name`` (atomically); the per-view scores where it has ground truth."""
+def _set_key(rs: RelightSet, key: dict) -> str:
+    """What ``rs``'s renders depend on, as JSON: ``key`` (model and settings), the views and their lights."""
     cams = rs.views.cameras
-    scores = []
-    with atomic_dir(out_root / rs.name) as out:
-        for v in tqdm(range(len(cams)), desc=f"relight {rs.name}", unit="view", disable=args.quiet):
-            img = render_relit(geometry, material, rs.light(v), cams.c2w[v], cams.K[v], cams.height, cams.width,
-                               args.spp, g, settings)
-            k = rs.views.indices[v]
-            rgb = img.rgb.cpu().numpy()
-            alpha = img.coverage.cpu().numpy()[..., None]
-            write_exr(out / f"{k}.exr", np.concatenate([img.premultiplied.cpu().numpy(), alpha], -1))
-            write_png(out / f"{k}.png", np.concatenate([tone_map(rgb), alpha], -1))
-            if rs.truth is not None:
-                truth = rs.truth[v].numpy()
-                mask = rs.masks[v].numpy() if rs.masks is not None else alpha[..., 0] > 0.5
-                p, s = score_view(rgb, truth, mask)
-                scores.append({"index": k, "psnr": p, "ssim": s, **relight_scores(rgb, truth, mask)})
-                write_grid(out / f"{k}_grid.png", [(truth, rgb)], [True])
-        info = {"envmap": rs.envmap, "rotate_deg": args.rotate, "exposure_ev": args.exposure,
-                "spp": args.spp, "max_bounces": args.max_bounces, "rr_depth": settings.rr_depth,
-                "seed": args.seed, "views": len(cams), "albedo_scale": stated, "albedo_scale_source": source,
-                "images": "K.exr linear RGBA premultiplied (A = coverage); K.png sRGB, highlights rolled off "
-                          "above linear 0.8, straight alpha"}
-        write_text_atomic(out / "render.json", json.dumps(info, indent=2) + "\n")
-    return scores
+    lights: dict[int, str] = {}
+    for v in range(len(cams)):
+        env = rs.light(v)
+        if id(env) not in lights:
+            lights[id(env)] = hashlib.sha256(env.image.detach().cpu().contiguous().numpy().tobytes()).hexdigest()
+    cameras = hashlib.sha256(cams.c2w.double().numpy().tobytes() + cams.K.double().numpy().tobytes() +
+                             f"{cams.height}x{cams.width}".encode()).hexdigest()
+    return json.dumps({**key, "set": rs.name, "envmap": rs.envmap, "lights": sorted(lights.values()),
+                       "cameras": cameras, "views": [int(k) for k in rs.views.indices]}, sort_keys=True)
+
+
+def _render_set(rs: RelightSet, geometry, material, settings: PathSettings, device: torch.device, key: dict,
+                out_root: Path, args: argparse.Namespace, stated: list[float], source: str) -> list[dict]:
+    """Render ``rs`` into ``out_root / rs.name`` (whole at the end; each view kept as it is done, so a rerun goes
+    on from them: :mod:`nefii.evaluate.partial`); the per-view scores where it has ground truth."""
+    cams = rs.views.cameras
+    partial = PartialViews(out_root / rs.name, _set_key(rs, key))
+    out = partial.folder
+    done = {v: partial.done(rs.views.indices[v]) for v in range(len(cams))}
+    resumed = sum(d is not None for d in done.values())
+    if resumed:
+        print(f"nefii relight: {rs.name}: {resumed} of {len(cams)} views already rendered by an interrupted "
+              f"relight ({out}); rendering the rest")
+    todo = [v for v in range(len(cams)) if done[v] is None]
+    for v in tqdm(todo, desc=f"relight {rs.name}", unit="view", disable=args.quiet):
+        k = rs.views.indices[v]
+        g = torch.Generator(device=device).manual_seed(view_seed(args.seed, int(k)))
+        img = render_relit(geometry, material, rs.light(v), cams.c2w[v], cams.K[v], cams.height, cams.width,
+                           args.spp, g, settings)
+        rgb = img.rgb.cpu().numpy()
+        alpha = img.coverage.cpu().numpy()[..., None]
+        write_exr(out / f"{k}.exr", np.concatenate([img.premultiplied.cpu().numpy(), alpha], -1))
+        write_png(out / f"{k}.png", np.concatenate([tone_map(rgb), alpha], -1))
+        done[v] = {}
+        if rs.truth is not None:
+            truth = rs.truth[v].numpy()
+            mask = rs.masks[v].numpy() if rs.masks is not None else alpha[..., 0] > 0.5
+            p, s = score_view(rgb, truth, mask)
+            done[v] = {"index": k, "psnr": p, "ssim": s, **relight_scores(rgb, truth, mask)}
+            write_grid(out / f"{k}_grid.png", [(truth, rgb)], [True])
+        partial.commit(k, done[v])
+    info = {"envmap": rs.envmap, "rotate_deg": args.rotate, "exposure_ev": args.exposure,
+            "spp": args.spp, "max_bounces": args.max_bounces, "rr_depth": settings.rr_depth,
+            "seed": args.seed, "views": len(cams), "albedo_scale": stated, "albedo_scale_source": source,
+            "images": "K.exr linear RGBA premultiplied (A = coverage); K.png sRGB, highlights rolled off "
+                      "above linear 0.8, straight alpha"}
+    write_text_atomic(out / "render.json", json.dumps(info, indent=2) + "\n")
+    partial.finish()
+    return [done[v] for v in range(len(cams)) if done[v]]
 
 
 def _fmt(x: float | None, digits: int) -> str:

@@ -1,11 +1,12 @@
-"""The views an interrupted ``nefii eval`` already scored, kept so that a rerun goes on from them.
+"""The views an interrupted ``nefii eval`` or ``nefii relight`` already rendered, kept so that a rerun goes on
+from them.
 
 An eval of a large test set runs for hours on a CPU (200 views at 512 x 512 take about a minute each on two
-cores). Each scored view is committed to a hidden folder beside the eval's (``RUN/.eval.partial``): its EXRs
-and grid first, then ``K.json`` (its entry of ``metrics.json``) as the commit mark. A rerun with the same
-model, test data and settings (the folder's ``key.json``) scores only the views without a mark; anything
-else clears the folder. Every view renders from its own random stream (:func:`view_seed`), so a resumed eval
-writes what an uninterrupted one writes.
+cores), a relight longer. Each finished view is committed to a hidden folder beside the output's (``RUN/eval``
+-> ``RUN/.eval.partial``): its files first, then ``K.json`` (its record, e.g. its entry of ``metrics.json``) as
+the commit mark. A rerun with the same key (the folder's ``key.json``: model, data and settings) renders only
+the views without a mark; any other key clears the folder. Every view renders from its own random stream
+(:func:`view_seed`), so a resumed run writes what an uninterrupted one writes.
 """
 from __future__ import annotations
 
@@ -67,32 +68,32 @@ class EvalKey:
         return json.dumps({**asdict(self), "views": list(self.views)}, sort_keys=True)
 
 
-class PartialEval:
-    """The hidden folder of an eval in progress, beside ``out``."""
+class PartialViews:
+    """The hidden folder of an output in progress, beside ``out``, for the settings ``key`` (JSON text)."""
 
-    def __init__(self, out: Path, key: EvalKey) -> None:
+    def __init__(self, out: Path, key: str) -> None:
         self.out = Path(out)
         self.folder = self.out.parent / f".{self.out.name}.partial"
-        text = key.to_json()
+        text = key
         found = self.folder / KEY
         if self.folder.exists() and not (found.is_file() and found.read_text() == text):
             shutil.rmtree(self.folder)          # another model, other data or other settings: start over
         self.folder.mkdir(parents=True, exist_ok=True)
         write_text_atomic(found, text)
 
-    def scored(self, index: int) -> dict | None:
-        """View ``index``'s entry of metrics.json if an earlier run committed it (None otherwise)."""
+    def done(self, index: int) -> dict | None:
+        """View ``index``'s record if an earlier run committed it (None otherwise)."""
         mark = self.folder / f"{index}.json"
         if not mark.is_file():
             return None
         try:
             return json.loads(mark.read_text())
         except ValueError:
-            return None                          # a mark cut short is no mark: the view is scored again
+            return None                          # a mark cut short is no mark: the view is rendered again
 
-    def commit(self, index: int, entry: dict) -> None:
-        """Mark view ``index`` scored (its files are already in :attr:`folder`)."""
-        write_text_atomic(self.folder / f"{index}.json", json.dumps(entry))
+    def commit(self, index: int, record: dict) -> None:
+        """Mark view ``index`` done (its files are already in :attr:`folder`)."""
+        write_text_atomic(self.folder / f"{index}.json", json.dumps(record))
 
     def finish(self) -> None:
         """Drop the marks and the key, and move the folder onto ``out`` as a whole."""

@@ -16,7 +16,7 @@ from ..fit.outputs import ENVMAP_SIZE, FittedRun
 from ..fit.trainer import transport_of
 from ..io.exr import write_exr
 from ..io.images import write_png
-from .partial import EvalKey, PartialEval, view_seed
+from .partial import EvalKey, PartialViews, view_seed
 from .render_views import render_view
 from .outputs import tonemap_display, write_grid, write_metrics
 from .table1 import ViewArrays, mean_scores, view_scores
@@ -100,9 +100,9 @@ def evaluate_run(fitted: FittedRun, scene: SceneData, out: Path, spp: int, seed:
     transport = transport_of(fitted.config)
     device = next(fitted.model.parameters()).device
     chosen = spread_views(len(scene), max_views)
-    partial = PartialEval(out, EvalKey.of(fitted.model, scene, [scene.indices[v] for v in chosen],
-                                          spp, seed, device.type))
-    done = {v: partial.scored(scene.indices[v]) for v in chosen}
+    partial = PartialViews(out, EvalKey.of(fitted.model, scene, [scene.indices[v] for v in chosen],
+                                           spp, seed, device.type).to_json())
+    done = {v: partial.done(scene.indices[v]) for v in chosen}
     resumed = sum(e is not None for e in done.values())
     if resumed:
         say(f"nefii eval: {resumed} of {len(chosen)} views already scored by an interrupted eval "
