@@ -20,7 +20,8 @@ from ..fit.session import prepare_fit
 from ..fit.trainer import NonFiniteLoss
 from ..io.atomic import write_text_atomic
 from ..io.checkpoints import load_latest_checkpoint
-from ..run_folder import RunManifest, after_failure, resume_point, write_manifest, writing_run
+from ..run_folder import (MANIFEST_FILE, RunManifest, after_failure, has_progress, read_manifest, resume_point,
+                          write_manifest, writing_run)
 from .common import pick_device, set_threads
 
 
@@ -29,7 +30,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("data", type=Path, help="dataset folder (any format nefii reads)")
     p.add_argument("--out", type=Path, required=True, help="run folder to write")
     p.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="starting configuration")
-    p.add_argument("--mesh", type=Path, default=None, help="frozen geometry (default: the scene's mesh.ply)")
+    p.add_argument("--mesh", type=Path, default=None, help="frozen geometry (default: the scene's mesh.ply; a dataset without one "
+                        "is reconstructed from its images first, by nefii geometry into RUN/geometry)")
     p.add_argument("--geometry", type=Path, default=None, metavar="GEO",
                    help="the output of nefii geometry instead of a mesh; --set geometry_mode=mesh|sdf says how to use it")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
@@ -75,6 +77,48 @@ def _warn(line: str) -> None:
     print(f"nefii fit: warning: {line}", file=sys.stderr)
 
 
+GEOMETRY_FOLDER = "geometry"
+"""where ``nefii fit`` puts the geometry it reconstructs for a dataset without a mesh: ``RUN/geometry``"""
+
+
+class GeometryStageFailed(Exception):
+    """The geometry stage that ``nefii fit`` ran for a dataset without a mesh stopped on an error (it said which)."""
+
+
+def _reconstruct(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> Path:
+    """The dataset has no mesh and none was given: ``nefii geometry`` into ``RUN/geometry`` (its own run folder:
+    resumed where a stopped fit left it, reused once it is done), the geometry preset named as the fit's."""
+    from . import geometry as geometry_cli
+    from ..sdf.config import GEOMETRY_PRESETS
+    from ..sdf.outputs import MESH_FILE
+    geo = args.out / GEOMETRY_FOLDER
+    if ctx.active:
+        raise InputError(args.data, "has no mesh: with several processes, run nefii geometry first and pass "
+                                    "--geometry GEO")
+    if (geo / "sdf.pt").is_file() and (geo / MESH_FILE).is_file():
+        print(f"nefii fit: the dataset has no mesh: using the geometry reconstructed from its images in {geo}")
+        return geo
+    fresh = read_manifest(args.out) is None
+    if fresh:                                # from here the folder holds a fit run, even before its first step
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_manifest(args.out, RunManifest("fit", None))
+    preset = cfg.preset if cfg.preset in GEOMETRY_PRESETS else "cpu"
+    print(f"nefii fit: the dataset has no mesh: reconstructing the object from its images first (nefii geometry, "
+          f"preset {preset}, into {geo}; about 40 min on 2 CPU cores; --mesh or --geometry skips this)")
+    stage = argparse.Namespace(data=args.data, out=geo, preset=preset, masks="auto", from_mesh=None,
+                               resume=geo.is_dir() and has_progress(geo, "geometry"), device=args.device,
+                               overrides=[], quiet=args.quiet)
+    try:
+        rc = geometry_cli.run(stage)
+    except InputError:
+        if fresh:
+            (args.out / MANIFEST_FILE).unlink(missing_ok=True)
+        raise
+    if rc != 0:
+        raise GeometryStageFailed
+    return geo
+
+
 def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: RunManifest | None) -> int:
     out: Path = args.out
     started = time.time()
@@ -93,8 +137,12 @@ def _fit(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext, manifest: R
     if cfg.preset == "gpu" and device.type == "cpu" and ctx.is_main:
         _warn("the gpu preset on the CPU takes about 16 times the cpu preset's samples a step (use --device cuda, or "
               "--preset cpu)")
-    session = prepare_fit(cfg, args.data, mesh=args.mesh, geometry_dir=args.geometry, device=device, dist=ctx,
-                          checkpoint=checkpoint, resume_of=recorded, say=lambda line: say(f"nefii fit: {line}"))
+    try:
+        session = prepare_fit(cfg, args.data, mesh=args.mesh, geometry_dir=args.geometry, device=device, dist=ctx,
+                              checkpoint=checkpoint, resume_of=recorded, say=lambda line: say(f"nefii fit: {line}"),
+                              reconstruct=lambda: _reconstruct(args, cfg, ctx))
+    except GeometryStageFailed:
+        return 1
     cfg, trainer, ckpt_dir = session.config, session.trainer, out / "checkpoints"
     logger = None
     if ctx.is_main:

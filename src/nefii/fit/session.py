@@ -112,15 +112,19 @@ def check_in_view(scene: SceneData, box: tuple[Tensor, Tensor], source: Geometry
 def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometry_dir: Path | None = None,
                 device: torch.device = torch.device("cpu"), dist: DistContext = DistContext(),
                 checkpoint: LoadedCheckpoint | None = None,
-                resume_of: tuple[Path, DataFingerprint] | None = None, say: Callable[[str], None] = lambda s: None) -> FitSession:
+                resume_of: tuple[Path, DataFingerprint] | None = None, say: Callable[[str], None] = lambda s: None,
+                reconstruct: Callable[[], Path] | None = None) -> FitSession:
     """The fit of ``data`` (any format nefii reads) on ``mesh``, ``geometry_dir`` (the output of ``nefii
     geometry``) or the dataset's own mesh, ready to train: first hits cast, model built, light initialised,
     or, with ``checkpoint`` (:func:`nefii.io.checkpoints.load_latest_checkpoint`), the training state in it. ``resume_of`` (the run folder and the data in its manifest) refuses
-    data other than that before anything is trained. ``say`` gets one line per stage."""
+    data other than that before anything is trained. ``say`` gets one line per stage. ``reconstruct``, where
+    none of the three exists, makes a ``nefii geometry`` folder from the images and returns it."""
     scene = load_scene(data, "train")
     scene, line = training_images(scene, cfg.max_image_side)
     if line:
         say(line)
+    if mesh is None and geometry_dir is None and scene.mesh_path is None and reconstruct is not None:
+        geometry_dir = reconstruct()
     source = resolve_source(mesh, geometry_dir, scene.mesh_path, cfg.geometry_mode, data)
     cfg, source = adapt_to_source(cfg, source)
     geometry, features = source.open()

@@ -1,0 +1,53 @@
+"""A dataset without a mesh: ``nefii fit`` reconstructs its geometry first (``RUN/geometry``) and fits on it."""
+from fit_fixtures import write_rendered_scene
+from nefii.cli.main import main
+from nefii.fit.outputs import load_run
+
+
+def test_fit_without_a_mesh_reconstructs_the_geometry_first(tmp_path, capsys):
+    scene = write_rendered_scene(tmp_path / "scene", res=16, n_train=6, n_test=1)
+    (scene / "mesh.ply").unlink()
+    run = tmp_path / "run"
+    fit = ["fit", str(scene), "--out", str(run), "--preset", "tiny", "--quiet", "--set", "steps=6",
+           "--set", "threads=1"]
+    assert main(fit) == 0
+    out = capsys.readouterr().out
+    assert "the dataset has no mesh: reconstructing" in out and "nefii geometry: done" in out
+    geo = run / "geometry"
+    for name in ("sdf.pt", "mesh.ply", "run.json"):
+        assert (geo / name).is_file(), name
+    fitted = load_run(run)
+    assert fitted.geometry.folder == geo.resolve() and fitted.mesh == (geo / "mesh.ply").resolve()
+    assert main(["eval", str(run), "--spp", "1", "--quiet"]) == 0
+
+    # the reconstruction is reused, not made again, when the fit goes on
+    stamp = (geo / "sdf.pt").stat().st_mtime_ns
+    assert main([*fit, "--resume"]) == 0
+    assert "using the geometry reconstructed from its images" in capsys.readouterr().out
+    assert (geo / "sdf.pt").stat().st_mtime_ns == stamp
+
+
+def test_a_fit_stopped_in_its_geometry_stage_goes_on_from_it(tmp_path, monkeypatch, capsys):
+    import nefii.cli.geometry as geometry_cli
+    scene = write_rendered_scene(tmp_path / "scene", res=16, n_train=6, n_test=1)
+    (scene / "mesh.ply").unlink()
+    run = tmp_path / "run"
+    fit = ["fit", str(scene), "--out", str(run), "--preset", "tiny", "--quiet", "--set", "steps=6",
+           "--set", "threads=1"]
+    real = geometry_cli.run
+
+    def stopped(args):            # the stage ran to its last checkpoint and was stopped before writing its outputs
+        assert real(args) == 0
+        (args.out / "sdf.pt").unlink()
+        (args.out / "mesh.ply").unlink()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(geometry_cli, "run", stopped)
+    assert main(fit) == 130
+    assert (run / "run.json").is_file(), "the fit's folder is a fit run from the geometry stage on"
+    assert not (run / "model.pt").exists()
+    monkeypatch.setattr(geometry_cli, "run", real)
+    capsys.readouterr()
+    assert main(fit) == 0, "the same command goes on (no --resume needed: the fit had no step yet)"
+    assert "nefii geometry: resumed from" in capsys.readouterr().out
+    assert (run / "model.pt").is_file() and (run / "geometry" / "sdf.pt").is_file()
