@@ -104,7 +104,7 @@ def _reconstruct(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> 
         write_manifest(args.out, RunManifest("fit", None))
     preset = cfg.preset if cfg.preset in GEOMETRY_PRESETS else "cpu"
     print(f"nefii fit: the dataset has no mesh: reconstructing the object from its images first (nefii geometry, "
-          f"preset {preset}, into {geo}; about 40 min on 2 CPU cores; --mesh or --geometry skips this)")
+          f"preset {preset}, into {geo}; --mesh or --geometry skips this)")
     stage = argparse.Namespace(data=args.data, out=geo, preset=preset, masks="auto", from_mesh=None,
                                resume=geo.is_dir() and has_progress(geo, "geometry"), device=args.device,
                                overrides=[], quiet=args.quiet)
