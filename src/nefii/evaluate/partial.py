@@ -13,14 +13,11 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 from torch import nn
 
-from ..data.fingerprint import fingerprint
-from ..data.scene import SceneData
 from ..io.atomic import replace_dir, write_text_atomic
 
 KEY = "key.json"
@@ -42,44 +39,17 @@ def view_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([seed, index]).generate_state(1, np.uint64)[0] >> np.uint64(1))
 
 
-@dataclass(frozen=True)
-class EvalKey:
-    """What an eval's per-view results depend on."""
-
-    model: str
-    """sha256 of the model's parameters and buffers"""
-    cameras: str
-    """sha256 of the test views' poses, intrinsics and size"""
-    images: str
-    """sha256 of the test images as loaded (after any downscale)"""
-    views: tuple[int, ...]
-    """the test views' indices scored"""
-    spp: int
-    seed: int
-    device: str
-    """``cpu`` or ``cuda``: their floating point differs"""
-
-    @staticmethod
-    def of(model: nn.Module, scene: SceneData, views: list[int], spp: int, seed: int, device: str) -> "EvalKey":
-        data = fingerprint(scene, None)
-        return EvalKey(model_sha256(model), data.cameras, data.images, tuple(views), spp, seed, device)
-
-    def to_json(self) -> str:
-        return json.dumps({**asdict(self), "views": list(self.views)}, sort_keys=True)
-
-
 class PartialViews:
     """The hidden folder of an output in progress, beside ``out``, for the settings ``key`` (JSON text)."""
 
     def __init__(self, out: Path, key: str) -> None:
         self.out = Path(out)
         self.folder = self.out.parent / f".{self.out.name}.partial"
-        text = key
         found = self.folder / KEY
-        if self.folder.exists() and not (found.is_file() and found.read_text() == text):
+        if self.folder.exists() and not (found.is_file() and found.read_text() == key):
             shutil.rmtree(self.folder)          # another model, other data or other settings: start over
         self.folder.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(found, text)
+        write_text_atomic(found, key)
 
     def done(self, index: int) -> dict | None:
         """View ``index``'s record if an earlier run committed it (None otherwise)."""
@@ -98,6 +68,6 @@ class PartialViews:
     def finish(self) -> None:
         """Drop the marks and the key, and move the folder onto ``out`` as a whole."""
         for p in self.folder.glob("*.json"):
-            if p.name == KEY or p.stem.lstrip("-").isdigit():
+            if p.name == KEY or p.stem.isdigit():
                 p.unlink()
         replace_dir(self.folder, self.out)

@@ -5,18 +5,22 @@
 """
 from __future__ import annotations
 
+import json
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
 import torch
+from torch import nn
 
+from ..data.fingerprint import fingerprint
 from ..data.scene import SceneData
 from ..fit.outputs import ENVMAP_SIZE, FittedRun
 from ..fit.trainer import transport_of
 from ..io.exr import write_exr
 from ..io.images import write_png
-from .partial import EvalKey, PartialViews, view_seed
+from .partial import PartialViews, model_sha256, view_seed
 from .render_views import render_view
 from .outputs import tonemap_display, write_grid, write_metrics
 from .table1 import ViewArrays, mean_scores, view_scores
@@ -77,6 +81,32 @@ def finish_metrics(out: Path, views: list[dict], notes: dict[str, str]) -> dict[
     means = mean_scores(views)
     write_metrics(out, means, views, notes)
     return means
+
+
+@dataclass(frozen=True)
+class EvalKey:
+    """What an eval's per-view results depend on."""
+
+    model: str
+    """sha256 of the model's parameters and buffers"""
+    cameras: str
+    """sha256 of the test views' poses, intrinsics and size"""
+    images: str
+    """sha256 of the test images as loaded (after any downscale)"""
+    views: tuple[int, ...]
+    """the test views' indices scored"""
+    spp: int
+    seed: int
+    device: str
+    """``cpu`` or ``cuda``: their floating point differs"""
+
+    @staticmethod
+    def of(model: nn.Module, scene: SceneData, views: list[int], spp: int, seed: int, device: str) -> "EvalKey":
+        data = fingerprint(scene, None)
+        return EvalKey(model_sha256(model), data.cameras, data.images, tuple(views), spp, seed, device)
+
+    def to_json(self) -> str:
+        return json.dumps({**asdict(self), "views": list(self.views)}, sort_keys=True)
 
 
 def spread_views(count: int, limit: int) -> list[int]:
