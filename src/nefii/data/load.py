@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..errors import InputError
-from . import colmap, nerf, nerfstudio, neus, physg, stanford_orb, synthetic4relight
+from . import colmap, nerf, nerfstudio, neus, physg, stanford_orb, synthetic4relight, tensoir
 from .scene import SceneData
 
 SPLITS = ("train", "test")
@@ -36,6 +36,7 @@ FORMATS: dict[str, Format] = {f.name: f for f in (
     # Stanford-ORB before nerf: both have transforms_{split}.json, only it has {split}_mask/
     Format(stanford_orb.NAME, stanford_orb.DESCRIPTION, stanford_orb.detect, stanford_orb.read, True),
     Format(nerf.NAME, nerf.DESCRIPTION, nerf.detect, nerf.read, True),
+    Format(tensoir.NAME, tensoir.DESCRIPTION, tensoir.detect, tensoir.read, True),
     # nerfstudio after nerf: a folder with transforms_{split}.json is read by it even beside a transforms.json
     Format(nerfstudio.NAME, nerfstudio.DESCRIPTION, nerfstudio.detect, nerfstudio.read, True),
     Format(neus.NAME, neus.DESCRIPTION, neus.detect, neus.read, False),
