@@ -1,4 +1,5 @@
-"""The TensoIR synthetic layout (Jin et al., CVPR 2023: lego, hotdog, armadillo, ficus), as TensoIR's loaders read it.
+"""The TensoIR synthetic layout (Jin et al., CVPR 2023: lego, hotdog, armadillo, ficus), as TensoIR's loaders read it;
+NeRFactor's per-view folders (Zhang et al. 2021), from which it comes, have the same files and keys.
 
     <scene>/train_000/, train_001/, ...   one folder a view (TensoIR ships 100 training and 200 test views)
         metadata.json                       imw, imh; cam_angle_x (radians); cam_transform_mat: Blender's
