@@ -129,6 +129,17 @@ def _warn_suspicious(views: Sequence[View], rgbs: list[np.ndarray], alphas: list
                       "counts as visible everywhere", stacklevel=3)
 
 
+def read_colour_stack(files: Sequence[Path], size: tuple[int, int]) -> torch.Tensor:
+    """``(N, H, W, 3)`` linear straight colour of ``files`` (relit views, say), each checked to be ``size``
+    = (H, W), the views' size."""
+    rgbs = []
+    for f in files:
+        rgb = read_image(f).rgb
+        check_size(rgb.shape, f, size, "the views")
+        rgbs.append(rgb)
+    return torch.from_numpy(np.stack(rgbs))
+
+
 def frame_indices(stems: Sequence[str]) -> tuple[int, ...]:
     """The trailing integer of each stem (``r_12`` -> 12) when all have one and they are distinct,
     else the positions ``0..N-1``."""

@@ -24,10 +24,10 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from .files import IMAGE_SUFFIXES, matrix, read_data_map, read_image, read_json, resolve_image
+from .files import IMAGE_SUFFIXES, matrix, read_data_map, read_json, resolve_image
 from .scene import GroundTruth, Relit, SceneData
 from .validate import check_c2w, check_K, check_size
-from .assemble import View, ViewStack, make_scene, read_views
+from .assemble import View, ViewStack, make_scene, read_colour_stack, read_views
 
 NAME = "nerf"
 DESCRIPTION = "transforms_{split}.json with {split}/ images (nefii layout, NeRF-synthetic)"
@@ -180,15 +180,10 @@ def _relit(root: Path, stems: list[Path], size: tuple[int, int], prefer: tuple[s
         return []
     out = []
     for env_dir in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
-        imgs = []
-        for s in stems:
-            f = resolve_image(env_dir / s.name, prefer)
-            rgb = read_image(f).rgb
-            check_size(rgb.shape, f, size, "the views")
-            imgs.append(rgb)
+        images = read_colour_stack([resolve_image(env_dir / s.name, prefer) for s in stems], size)
         env_file = next((p for p in (folder / f"{env_dir.name}.exr", env_dir / "envmap.exr") if p.is_file()), None)
         env = None if env_file is None else torch.from_numpy(read_data_map(env_file, 3))
-        out.append(Relit(name=env_dir.name, images=torch.from_numpy(np.stack(imgs)), envmap=env))
+        out.append(Relit(name=env_dir.name, images=images, envmap=env))
     return out
 
 

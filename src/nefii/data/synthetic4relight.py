@@ -21,11 +21,11 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from .files import matrix, read_data_map, read_image, read_json
+from .files import matrix, read_data_map, read_json
 from .nerf import frames_of, intrinsics
 from .scene import GroundTruth, Relit, SceneData
 from .validate import check_c2w, check_size
-from .assemble import View, frame_indices, make_scene, read_views
+from .assemble import View, frame_indices, make_scene, read_colour_stack, read_views
 
 NAME = "synthetic4relight"
 DESCRIPTION = "transforms_{split}.json with {split}/K_rgb.exr + K_mask.png or K_rgba.png (Synthetic4Relight)"
@@ -56,13 +56,8 @@ def _relit(root: Path, stems: list[str], size: tuple[int, int]) -> list[Relit]:
     names = sorted({p.name.split("_")[0] for p in folder.glob("*_*.png")})
     out = []
     for env in names:
-        imgs = []
-        for s in stems:
-            f = folder / f"{env}_{s}.png"
-            rgb = read_image(f).rgb
-            check_size(rgb.shape, f, size, "the views")
-            imgs.append(rgb)
-        out.append(Relit(name=env, images=torch.from_numpy(np.stack(imgs)), envmap=None))
+        images = read_colour_stack([folder / f"{env}_{s}.png" for s in stems], size)
+        out.append(Relit(name=env, images=images, envmap=None))
     return out
 
 

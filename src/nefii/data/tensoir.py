@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from .assemble import View, make_scene, read_views
-from .files import read_data_map, read_image, read_json
+from .assemble import View, make_scene, read_colour_stack, read_views
+from .files import read_data_map, read_json
 from .nerf import OPENGL_TO_OPENCV
 from .scene import GroundTruth, Relit, SceneData
 from .validate import check_c2w, check_K, check_size
@@ -103,16 +103,8 @@ def _relit(folders: list[Path], size: tuple[int, int]) -> list[Relit]:
         return {p.stem[len("rgba_"):] for p in folder.glob("rgba_*.png")}
 
     common = set.intersection(*(names(f) for f in folders))
-    out = []
-    for env in sorted(common):
-        imgs = []
-        for f in folders:
-            path = f / f"rgba_{env}.png"
-            rgb = read_image(path).rgb
-            check_size(rgb.shape, path, size, "the views")
-            imgs.append(rgb)
-        out.append(Relit(name=env, images=torch.from_numpy(np.stack(imgs)), envmap=None))
-    return out
+    return [Relit(name=env, images=read_colour_stack([f / f"rgba_{env}.png" for f in folders], size), envmap=None)
+            for env in sorted(common)]
 
 
 def read(root: Path, split: str) -> SceneData:
