@@ -77,6 +77,10 @@ def test_a_tensoir_scene_fits_on_a_given_mesh_and_evaluates(twin_and_tensoir, tm
     assert main(["eval", str(run), "--spp", "1", "--quiet"]) == 0
     metrics = json.loads((run / "eval" / "metrics.json").read_text())
     assert isinstance(metrics["masked"]["albedo_psnr"], float) and metrics["masked"]["roughness_mse"] is None
+    env = next((twin / "relight").glob("*.exr"))           # TensoIR's maps live outside the scene: --envmap
+    assert main(["relight", str(run), "--envmap", str(env), "--spp", "2", "--max-bounces", "2", "--quiet"]) == 0
+    scored = json.loads((run / "relight" / "metrics.json").read_text())[env.stem]
+    assert [v["index"] for v in scored["views"]] == [0, 1] and isinstance(scored["psnr"], float)
 
 
 @pytest.mark.parametrize("edit, problem", [
