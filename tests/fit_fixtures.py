@@ -119,3 +119,15 @@ def write_rendered_scene(root: Path, res: int = 16, n_train: int = 6, n_test: in
     for name, other in (relight_envs() if relight else {}).items():
         write_exr(root / "relight" / f"{name}.exr", sg_to_equirect(other, 32, 64).numpy())
     return root
+
+
+def stopped_after_first_call(fn):
+    """``fn`` that works once and then raises ``KeyboardInterrupt`` (a Ctrl-C during the second view)."""
+    calls = []
+
+    def wrapped(*args, **kwargs):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return fn(*args, **kwargs)
+    return wrapped

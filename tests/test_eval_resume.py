@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from fit_fixtures import write_rendered_scene
+from fit_fixtures import stopped_after_first_call, write_rendered_scene
 from nefii.cli.main import main
 from nefii.data import load_scene
 from nefii.evaluate.run import evaluate_run, spread_views
@@ -104,15 +104,8 @@ def test_negative_max_views_is_one_line_and_exit_2(fitted, capsys):
 
 def test_ctrl_c_keeps_the_views_scored_and_releases_the_run(fitted, tmp_path, monkeypatch, capsys):
     import nefii.evaluate.run as run_module
-    real, calls = run_module.render_view, []
-
-    def render_then_stop(*args, **kwargs):
-        if calls:
-            raise KeyboardInterrupt
-        calls.append(1)
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(run_module, "render_view", render_then_stop)
+    real = run_module.render_view
+    monkeypatch.setattr(run_module, "render_view", stopped_after_first_call(real))
     assert main(["eval", str(fitted), "--spp", "2", "--quiet"]) == 130
     assert "the same command goes on from them" in capsys.readouterr().err
     assert not (fitted / "run.lock").exists()

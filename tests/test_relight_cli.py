@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fit_fixtures import relight_envs, scene_material, scene_mesh, write_rendered_scene
+from fit_fixtures import relight_envs, scene_material, scene_mesh, stopped_after_first_call, write_rendered_scene
 from nefii.cli.main import main
 from nefii.data import load_scene
 from nefii.errors import InputError
@@ -177,15 +177,8 @@ def test_an_interrupted_relight_goes_on_and_matches_an_uninterrupted_one(scene, 
     args = ["--envmap", str(scene / "relight" / "dusk.exr"), "--spp", "4", "--max-bounces", "2", "--quiet",
             "--albedo-scale", "none"]
     assert main(["relight", str(fitted), *args, "--out", str(tmp_path / "straight")]) == 0
-    real, calls = relight_cli.render_relit, []
-
-    def render_then_stop(*a, **kw):
-        if calls:
-            raise KeyboardInterrupt
-        calls.append(1)
-        return real(*a, **kw)
-
-    monkeypatch.setattr(relight_cli, "render_relit", render_then_stop)
+    real = relight_cli.render_relit
+    monkeypatch.setattr(relight_cli, "render_relit", stopped_after_first_call(real))
     assert main(["relight", str(fitted), *args, "--out", str(tmp_path / "resumed")]) == 130
     assert not (tmp_path / "resumed" / "dusk").exists()
     assert [p.name for p in (tmp_path / "resumed" / ".dusk.partial").glob("[0-9].json")] == ["0.json"]

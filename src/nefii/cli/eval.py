@@ -11,8 +11,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..data import load_scene
-from ..errors import InputError
 from ..data.downscale import downscaled
+from ..errors import InputError
 from ..evaluate.run import evaluate_run
 from ..fit.outputs import load_run
 from ..io.lock import RunLock

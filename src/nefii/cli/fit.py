@@ -90,12 +90,12 @@ def _reconstruct(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> 
     resumed where a stopped fit left it, reused once it is done), the geometry preset named as the fit's."""
     from . import geometry as geometry_cli
     from ..sdf.config import GEOMETRY_PRESETS
-    from ..sdf.outputs import MESH_FILE
+    from ..sdf.outputs import MESH_FILE, SDF_FILE
     geo = args.out / GEOMETRY_FOLDER
     if ctx.active:
         raise InputError(args.data, "has no mesh: with several processes, run nefii geometry first and pass "
                                     "--geometry GEO")
-    if (geo / "sdf.pt").is_file() and (geo / MESH_FILE).is_file():
+    if (geo / SDF_FILE).is_file() and (geo / MESH_FILE).is_file():
         print(f"nefii fit: the dataset has no mesh: using the geometry reconstructed from its images in {geo}")
         return geo
     fresh = read_manifest(args.out) is None

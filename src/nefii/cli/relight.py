@@ -20,7 +20,6 @@ goes on from them (every view renders from a seed of its own: a resumed folder i
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 import warnings
@@ -32,6 +31,7 @@ from tqdm import tqdm
 
 from ..data import load_scene
 from ..data.downscale import downscaled
+from ..data.fingerprint import arrays_sha256, cameras_sha256
 from ..data.scene import Relit
 from ..errors import InputError
 from ..evaluate.outputs import write_grid
@@ -117,7 +117,7 @@ def _file_set(args: argparse.Namespace, env, scene, views: Views, name: str) -> 
             print(f"nefii relight: not scored against the dataset's '{gt.name}': the map is turned or exposed")
             gt = None
         _check_same_map(gt, env.image)
-    return RelightSet(name, views, lambda v: env, str(args.envmap), None if gt is None else gt.images,
+    return RelightSet(name, views, lambda v: env, str(args.envmap), env.image, None if gt is None else gt.images,
                       None if gt is None else scoring_masks(scene))
 
 
@@ -207,16 +207,10 @@ DATASET_LIGHTS = "dataset_lights"
 
 def _set_key(rs: RelightSet, key: dict) -> str:
     """What ``rs``'s renders depend on, as JSON: ``key`` (model and settings), the views and their lights."""
-    cams = rs.views.cameras
-    lights: dict[int, str] = {}
-    for v in range(len(cams)):
-        env = rs.light(v)
-        if id(env) not in lights:
-            lights[id(env)] = hashlib.sha256(env.image.detach().cpu().contiguous().numpy().tobytes()).hexdigest()
-    cameras = hashlib.sha256(cams.c2w.double().numpy().tobytes() + cams.K.double().numpy().tobytes() +
-                             f"{cams.height}x{cams.width}".encode()).hexdigest()
-    return json.dumps({**key, "set": rs.name, "envmap": rs.envmap, "lights": sorted(lights.values()),
-                       "cameras": cameras, "views": [int(k) for k in rs.views.indices]}, sort_keys=True)
+    return json.dumps({**key, "set": rs.name, "envmap": rs.envmap,
+                       "radiance": arrays_sha256(rs.radiance.detach().cpu().numpy()),
+                       "cameras": cameras_sha256(rs.views.cameras), "views": [int(k) for k in rs.views.indices]},
+                      sort_keys=True)
 
 
 def _render_set(rs: RelightSet, geometry, material, settings: PathSettings, device: torch.device, key: dict,

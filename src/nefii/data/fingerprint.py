@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from .scene import SceneData
+from .scene import Cameras, SceneData
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,8 @@ def require_same(recorded: DataFingerprint, found: DataFingerprint, run: Path) -
                                      f"{', '.join(diff)} differ; use another --out for this data")
 
 
-def _sha(*arrays: np.ndarray) -> str:
+def arrays_sha256(*arrays: np.ndarray) -> str:
+    """sha256 of the arrays' dtypes, shapes and values, in order."""
     h = hashlib.sha256()
     for a in arrays:
         a = np.ascontiguousarray(a)
@@ -70,9 +71,12 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def cameras_sha256(cams: Cameras) -> str:
+    """sha256 of the cameras' poses, intrinsics and image size."""
+    return arrays_sha256(cams.c2w.double().numpy(), cams.K.double().numpy(), np.array([cams.height, cams.width]))
+
+
 def fingerprint(scene: SceneData, mesh: Path | None) -> DataFingerprint:
     """The fingerprint of ``scene`` (its training split) fitted on ``mesh``."""
-    cams = scene.cameras
-    size = np.array([cams.height, cams.width])
-    return DataFingerprint(str(Path(scene.root).resolve()), _sha(cams.c2w.double().numpy(), cams.K.double().numpy(), size),
-                           _sha(scene.images.numpy()), None if mesh is None else file_sha256(mesh))
+    return DataFingerprint(str(Path(scene.root).resolve()), cameras_sha256(scene.cameras),
+                           arrays_sha256(scene.images.numpy()), None if mesh is None else file_sha256(mesh))

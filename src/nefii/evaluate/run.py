@@ -106,7 +106,7 @@ class EvalKey:
         return EvalKey(model_sha256(model), data.cameras, data.images, tuple(views), spp, seed, device)
 
     def to_json(self) -> str:
-        return json.dumps({**asdict(self), "views": list(self.views)}, sort_keys=True)
+        return json.dumps(asdict(self), sort_keys=True)
 
 
 def spread_views(count: int, limit: int) -> list[int]:

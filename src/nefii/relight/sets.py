@@ -32,6 +32,9 @@ class RelightSet:
     """the environment of view ``v``"""
     envmap: str
     """what lit it, in words, for ``render.json`` and ``metrics.json``"""
+    radiance: Float[Tensor, "*N He We 3"]
+    """the map behind ``light``: one for the set, or one per view (``N`` first); what a render's key hashes
+    without building every view's sampling tables"""
     truth: Float[Tensor, "N H W 3"] | None = None
     """linear straight colour to score each view against; ``None``: not scored"""
     masks: Bool[Tensor, "N H W"] | None = None
@@ -77,6 +80,7 @@ def dataset_sets(scene: SceneData, device: torch.device) -> list[RelightSet]:
         views = Views(r.cameras if own else scene.cameras, relit_indices(r, scene))
         what = ("each view's own map, from the dataset, in the world frame" if r.view_envmaps is not None
                 else f"the dataset's map of '{r.name}'")
-        out.append(RelightSet(r.name, views, _light_of(r, scene, device), what, r.images,
+        radiance = r.view_envmaps if r.view_envmaps is not None else r.envmap
+        out.append(RelightSet(r.name, views, _light_of(r, scene, device), what, radiance, r.images,
                               r.masks if own else scoring_masks(scene)))
     return out
