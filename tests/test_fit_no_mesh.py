@@ -13,6 +13,7 @@ def test_fit_without_a_mesh_reconstructs_the_geometry_first(tmp_path, capsys):
     assert main(fit) == 0
     out = capsys.readouterr().out
     assert "the dataset has no mesh: reconstructing" in out and "nefii geometry: done" in out
+    assert "device cpu, 1 threads" in out.split("nefii geometry: NeuS", 1)[1], "the fit's threads reach the stage"
     geo = run / "geometry"
     for name in ("sdf.pt", "mesh.ply", "run.json"):
         assert (geo / name).is_file(), name

@@ -87,7 +87,8 @@ class GeometryStageFailed(Exception):
 
 def _reconstruct(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> Path:
     """The dataset has no mesh and none was given: ``nefii geometry`` into ``RUN/geometry`` (its own run folder:
-    resumed where a stopped fit left it, reused once it is done), the geometry preset named as the fit's."""
+    resumed where a stopped fit left it, reused once it is done), the geometry preset named as the fit's, at the
+    fit's thread count (the fit's other settings are the fit's own)."""
     from . import geometry as geometry_cli
     from ..sdf.config import GEOMETRY_PRESETS
     from ..sdf.outputs import MESH_FILE, SDF_FILE
@@ -107,7 +108,7 @@ def _reconstruct(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> 
           f"preset {preset}, into {geo}; --mesh or --geometry skips this)")
     stage = argparse.Namespace(data=args.data, out=geo, preset=preset, masks="auto", from_mesh=None,
                                resume=geo.is_dir() and has_progress(geo, "geometry"), device=args.device,
-                               overrides=[], quiet=args.quiet)
+                               overrides=[f"threads={cfg.threads}"] if cfg.threads else [], quiet=args.quiet)
     try:
         rc = geometry_cli.run(stage)
     except InputError:
