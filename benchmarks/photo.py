@@ -10,8 +10,10 @@ nerfstudio ``transforms.json``), then
 - ``mesh``: ``nefii fit PHOTO --mesh MESH --set exposure=per_view`` on the scene's true mesh (the photo's
   cameras are the clean scene's, so the mesh is in their world): what the photometric problems cost alone;
 - ``mesh_shared``: the same with one exposure for every view (what the per-view gains are worth);
-- ``geometry``: ``nefii geometry PHOTO`` (no masks: the background model), then ``nefii fit PHOTO --geometry
-  GEO --set exposure=per_view``: the whole path from a capture to materials (long: ~40 min a scene);
+- ``geometry``: ``nefii fit PHOTO --set exposure=per_view`` with no mesh, the one command a user types: the fit
+  reconstructs the surface first (``nefii geometry``'s stage into ``RUN/geometry``, no masks: the background
+  model, at the stage's own image size) and fits on it; the whole path from a capture to materials (~25 min a
+  scene alone);
 
 each scored by ``nefii eval RUN --data CLEAN`` on the clean test views (albedo aligned per view and
 channel, so the capture's unknown overall exposure does not count). The clean-input reference is the
@@ -28,7 +30,7 @@ import json
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import (CACHE, code_version, fit_and_eval, fit_threads, machine, nefii, scene, set_flags, stamp,
+from .common import (CACHE, code_version, fit_and_eval, fit_threads, machine, scene, set_flags, stamp,
                      write_results)
 from .quality import SCENES, run_dir
 
@@ -66,14 +68,7 @@ def run_one(name: str, config: str, seed: int, threads: int) -> None:
     run = photo_run(name, config, seed)
     if (run / "eval" / "metrics.json").exists():
         return
-    if config == "geometry":
-        geo = CACHE / "runs" / f"photo_{name}_geo"
-        if not (geo / "mesh.ply").exists():
-            nefii("geometry", str(photo), "--out", str(geo), "--quiet",
-                  *set_flags([f"max_image_side={RES}"], threads), what=f"geometry {name}")
-        where = ["--geometry", str(geo)]
-    else:
-        where = ["--mesh", str(clean / "mesh.ply")]
+    where = [] if config == "geometry" else ["--mesh", str(clean / "mesh.ply")]
     fit_and_eval(photo, run, [*where, *set_flags([*CONFIGS[config], f"seed={seed}", f"max_image_side={RES}"], threads)],
                  64, f"{name}/{config}", eval_args=["--data", str(clean)])
 

@@ -156,12 +156,25 @@ def test_normalisation_from_masks_is_the_visual_hulls_bounding_sphere():
     torch.testing.assert_close(norm.to_world(norm.to_unit(x)), x)
 
 
-def test_normalisation_without_masks_fits_in_every_view():
+def sphere_hits(cams: Cameras, view: int, center, radius: float) -> torch.Tensor:
+    """(H, W) whether each pixel's ray through its centre meets the sphere."""
+    o, d = pixel_rays(cams.c2w[view], cams.K[view], cams.height, cams.width)
+    oc = o.double() - torch.tensor(center, dtype=torch.float64)
+    d = d.double() / d.double().norm(dim=-1, keepdim=True)
+    tc = -(oc * d).sum(-1)
+    return (oc + tc.unsqueeze(-1) * d).norm(dim=-1) <= radius
+
+
+def test_normalisation_without_masks_holds_the_nearest_views_whole_frame():
     cams = ring_cameras()
     norm = normalization_from_cameras(cams, None)
     assert np.allclose(norm.center, (0.3, -0.2, 0.1), atol=1e-6)
-    half_fov = math.radians(20.0)
-    assert norm.radius == pytest.approx(3.0 * math.sqrt(1 + 0.4**2) * math.sin(half_fov), rel=1e-6)
+    corner = math.atan(math.sqrt(2) * math.tan(math.radians(20.0)))      # 40 degrees across the square frame
+    assert norm.radius == pytest.approx(3.0 * math.sqrt(1 + 0.4**2) * math.sin(corner), rel=1e-6)
+    nearest = 0                                   # the ring's even views sit lower, nearer the centre
+    assert sphere_hits(cams, nearest, norm.center, norm.radius).all(), "every pixel of the nearest view"
+    shrunk = sphere_hits(cams, nearest, norm.center, 0.97 * norm.radius)
+    assert not shrunk[0, 0] and not shrunk[-1, -1] and shrunk[24, 24], "the corners are what sets it"
 
 
 def test_normalisation_files_round_trip_and_bad_ones_are_input_errors(tmp_path):
