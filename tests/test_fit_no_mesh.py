@@ -9,11 +9,12 @@ def test_fit_without_a_mesh_reconstructs_the_geometry_first(tmp_path, capsys):
     (scene / "mesh.ply").unlink()
     run = tmp_path / "run"
     fit = ["fit", str(scene), "--out", str(run), "--preset", "tiny", "--quiet", "--set", "steps=6",
-           "--set", "threads=1"]
+           "--set", "threads=1", "--set", "exposure=per_view"]
     assert main(fit) == 0
     out = capsys.readouterr().out
     assert "the dataset has no mesh: reconstructing" in out and "nefii geometry: done" in out
-    assert "device cpu, 1 threads" in out.split("nefii geometry: NeuS", 1)[1], "the fit's threads reach the stage"
+    stage = out.split("nefii geometry: NeuS", 1)[1].splitlines()[0]
+    assert "device cpu, 1 threads" in stage and "a gain per view" in stage, "the fit's threads and gains reach it"
     geo = run / "geometry"
     for name in ("sdf.pt", "mesh.ply", "run.json"):
         assert (geo / name).is_file(), name

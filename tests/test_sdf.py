@@ -15,6 +15,7 @@ from nefii.camera import intrinsics_from_fov, look_at, pixel_rays
 from nefii.cli.main import main
 from nefii.data.scene import Cameras
 from nefii.errors import InputError
+from nefii.fit.exposure import ViewGains
 from nefii.fields.encodings import HashGrid
 from nefii.raycast import MeshGeometry
 from nefii.raycast.base import Rays
@@ -510,6 +511,39 @@ def test_normal_prior_waits_for_its_start_step():
     early, late = cfg.steps // 2 - 1, cfg.steps // 2
     assert total(objective, early) == total(plain, early)
     assert total(objective, late) > total(plain, late) + 1e-3
+
+
+def test_per_view_gains_multiply_each_views_rendered_colour(monkeypatch):
+    """With ``exposure = per_view`` the colour each ray renders is multiplied by its own view's gain (pixel ``i``
+    is view ``i // view_pixels``) before it meets the photo, and the gains are the model's parameters (the
+    optimiser trains them) with their prior in the total."""
+    import nefii.sdf.train as train
+    cfg = resolve_geometry_config("tiny", ["area_weight=0", "normal_smoothness=0", "exposure=per_view"])
+    gen = torch.Generator().manual_seed(0)
+    per_view = 32
+    d = torch.randn(2 * per_view, 3, generator=gen)
+    d = d / d.norm(dim=-1, keepdim=True)
+    obj = ImageObjective(cfg, -2.0 * d, d, torch.rand(2 * per_view, 3, generator=gen), None, view_pixels=per_view)
+    model = NeuSModel(cfg, background=False, gains=ViewGains(2))
+    assert any(p is model.gains.log_gain for p in model.parameters())
+    seen: list = []
+    real_draw, real_loss = train.draw_rays, train.geometry_loss
+    monkeypatch.setattr(train, "draw_rays", lambda *a: seen.append(real_draw(*a)) or seen[-1])
+    monkeypatch.setattr(train, "geometry_loss", lambda out, *a: seen.append(out.rgb.detach()) or real_loss(out, *a))
+
+    def rendered(log_gain: list[float]) -> tuple[torch.Tensor, torch.Tensor, float]:
+        with torch.no_grad():
+            model.gains.log_gain.copy_(torch.tensor(log_gain)[:, None].expand(2, 3))
+        seen.clear()
+        total = float(obj.loss(model, 0, torch.Generator().manual_seed(1)).total.detach())
+        return seen[0][0], seen[1], total
+
+    i, plain, total_plain = rendered([0.0, 0.0])
+    j, gained, total_gained = rendered([-0.3, 0.5])             # centred: gains exp(-0.4) and exp(+0.4)
+    assert torch.equal(i, j) and len(torch.unique(i // per_view)) == 2
+    expected = torch.exp(torch.where(i // per_view == 0, -0.4, 0.4))[:, None]
+    torch.testing.assert_close(gained, plain * expected, rtol=1e-5, atol=1e-7)
+    assert total_gained != total_plain
 
 
 def test_an_appearance_encoding_gives_the_colour_a_table_of_its_own():

@@ -85,10 +85,16 @@ class GeometryStageFailed(Exception):
     """The geometry stage that ``nefii fit`` ran for a dataset without a mesh stopped on an error (it said which)."""
 
 
+def _stage_overrides(cfg: FitConfig) -> list[str]:
+    """The fit's settings its geometry stage shares: the threads, and a gain per view (the same photos)."""
+    return ([f"threads={cfg.threads}"] if cfg.threads else []) + (
+        ["exposure=per_view"] if cfg.exposure == "per_view" else [])
+
+
 def _reconstruct(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> Path:
     """The dataset has no mesh and none was given: ``nefii geometry`` into ``RUN/geometry`` (its own run folder:
-    resumed where a stopped fit left it, reused once it is done), the geometry preset named as the fit's, at the
-    fit's thread count (the fit's other settings are the fit's own)."""
+    resumed where a stopped fit left it, reused once it is done), the geometry preset named as the fit's, with
+    the fit's threads and per-view gains (the fit's other settings are the fit's own)."""
     from . import geometry as geometry_cli
     from ..sdf.config import GEOMETRY_PRESETS
     from ..sdf.outputs import MESH_FILE, SDF_FILE
@@ -108,7 +114,7 @@ def _reconstruct(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> 
           f"preset {preset}, into {geo}; --mesh or --geometry skips this)")
     stage = argparse.Namespace(data=args.data, out=geo, preset=preset, masks="auto", from_mesh=None,
                                resume=geo.is_dir() and has_progress(geo, "geometry"), device=args.device,
-                               overrides=[f"threads={cfg.threads}"] if cfg.threads else [], quiet=args.quiet)
+                               overrides=_stage_overrides(cfg), quiet=args.quiet)
     try:
         rc = geometry_cli.run(stage)
     except InputError:

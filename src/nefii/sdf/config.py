@@ -78,6 +78,11 @@ class GeometryConfig:
     appearance_encoding: bool = False
     """the colour network encodes the point with ``color.encoding`` of its own, besides the SDF's
     feature vector: texture then need not live in the SDF's encoding, where it bends the surface"""
+    exposure: Literal["shared", "per_view"] = "shared"
+    """``per_view``: a learned RGB gain per training view multiplies the rendered colour, as the fit's
+    ``exposure`` does (:mod:`nefii.fit.exposure`: centred over the views; started at 1, the images tell them
+    apart within a few thousand steps): photos whose exposure and white balance drift from view to view,
+    which one colour network would otherwise explain by bending the surface"""
     view_freqs: Annotated[int, Range(0, 32)] = 4
     """Fourier frequencies of the view direction fed to the colour network (NeuS: 4); fewer leave less
     room to fake geometry by view-dependent colour"""

@@ -8,13 +8,15 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from ..fit.build import make_encoding
+from ..fit.exposure import ViewGains
 from .config import GeometryConfig
 from .networks import Background, ColorNetwork, SDFNetwork, Sharpness
 from .volume import composite_weights, neus_alpha, sphere_bounds, stratified_depths, upsample_depths
 
 
 class NeuSModel(nn.Module):
-    def __init__(self, cfg: GeometryConfig, background: bool) -> None:
+    def __init__(self, cfg: GeometryConfig, background: bool, gains: ViewGains | None = None) -> None:
+        """``gains``: the training views' gains (``exposure = per_view``), trained with the rest."""
         super().__init__()
         torch.manual_seed(cfg.seed)
         self.sdf = SDFNetwork(make_encoding(cfg.sdf.encoding), cfg.sdf.hidden, cfg.sdf.layers, cfg.feature_dim,
@@ -23,6 +25,7 @@ class NeuSModel(nn.Module):
                                   make_encoding(cfg.color.encoding) if cfg.appearance_encoding else None)
         self.sharpness = Sharpness()
         self.background = Background() if background else None
+        self.gains = gains
 
 
 @dataclass(frozen=True)

@@ -54,6 +54,8 @@ class ImageObjective:
     mask: Bool[Tensor, " P"] | None
     unit: float = 1.0
     """the images' radiance the stage calls 1 (:func:`nefii.fit.units.radiance_unit`)"""
+    view_pixels: int = 0
+    """pixels per view: pixel ``i`` belongs to view ``i // view_pixels`` (for the model's per-view gains)"""
 
     def __post_init__(self) -> None:
         self.foreground = None if self.mask is None else self.mask.nonzero().squeeze(-1)
@@ -79,7 +81,7 @@ class ImageObjective:
         if unit != 1.0:
             colours = colours / unit
         return cls(cfg, torch.cat(o).to(device), torch.cat(d).to(device), colours.to(device),
-                   None if mask is None else mask.to(device), unit)
+                   None if mask is None else mask.to(device), unit, views.height * views.width)
 
     def loss(self, model: NeuSModel, step: int, generator: torch.Generator) -> GeometryLoss:
         cfg = self.cfg
@@ -87,6 +89,9 @@ class ImageObjective:
                               generator, self.origins.device)
         anneal = min(1.0, step / max(cfg.anneal_end * cfg.steps, 1.0))
         out = render_rays(model, self.origins[i], self.directions[i], cfg, generator, train=True, cos_anneal=anneal)
+        if model.gains is not None:                  # the photo is the scene's radiance times its view's gain
+            out = dataclasses.replace(out, rgb=out.rgb * model.gains(torch.div(i, self.view_pixels,
+                                                                               rounding_mode="floor")))
         extra = uniform_in_ball(cfg.batch_rays, generator, self.origins.device)
         _, g_extra, _ = model.sdf.with_gradient(extra, create_graph=True)
         terms = geometry_loss(out, self.rgb[i], None if self.mask is None else self.mask[i], g_extra,
@@ -95,6 +100,8 @@ class ImageObjective:
             u = uniform_in_ball(cfg.area_points, generator, self.origins.device)
             area = level_set_area(model.sdf.sdf(u), cfg.area_sharpness)
             terms = dataclasses.replace(terms, total=terms.total + cfg.area_weight * area)
+        if model.gains is not None:
+            terms = dataclasses.replace(terms, total=terms.total + model.gains.prior())
         if cfg.normal_smoothness > 0 and step >= cfg.normal_smoothness_start * cfg.steps:
             hit = out.opacity.detach() > 0.5
             surface = (self.origins[i] + out.depth.detach().unsqueeze(-1) * self.directions[i])[hit]
