@@ -59,6 +59,8 @@ class ImageObjective:
 
     def __post_init__(self) -> None:
         self.foreground = None if self.mask is None else self.mask.nonzero().squeeze(-1)
+        if self.cfg.exposure == "per_view" and self.view_pixels < 1:
+            raise ValueError("exposure = per_view needs view_pixels, the pixels of one view")
 
     @classmethod
     def from_views(cls, cfg: GeometryConfig, views: SceneData, norm: Normalization, masks: Tensor | None,
