@@ -15,7 +15,6 @@ from nefii.camera import intrinsics_from_fov, look_at, pixel_rays
 from nefii.cli.main import main
 from nefii.data.scene import Cameras
 from nefii.errors import InputError
-from nefii.fit.exposure import ViewGains
 from nefii.fields.encodings import HashGrid
 from nefii.raycast import MeshGeometry
 from nefii.raycast.base import Rays
@@ -524,7 +523,7 @@ def test_per_view_gains_multiply_each_views_rendered_colour(monkeypatch):
     d = torch.randn(2 * per_view, 3, generator=gen)
     d = d / d.norm(dim=-1, keepdim=True)
     obj = ImageObjective(cfg, -2.0 * d, d, torch.rand(2 * per_view, 3, generator=gen), None, view_pixels=per_view)
-    model = NeuSModel(cfg, background=False, gains=ViewGains(2))
+    model = NeuSModel(cfg, background=False, num_views=2)
     assert any(p is model.gains.log_gain for p in model.parameters())
     seen: list = []
     real_draw, real_loss = train.draw_rays, train.geometry_loss

@@ -18,7 +18,6 @@ from ..data import load_scene
 from ..data.downscale import training_images
 from ..data.fingerprint import fingerprint, require_same
 from ..errors import InputError
-from ..fit.exposure import ViewGains
 from ..io.atomic import atomic_path, write_text_atomic
 from ..raycast.mesh import check_faces
 from ..run_folder import RunManifest, after_failure, resume_point, write_manifest, writing_run
@@ -123,12 +122,11 @@ def _geometry(args: argparse.Namespace, cfg: GeometryConfig, device: torch.devic
         if unit != 1.0:
             print(f"nefii geometry: the images are {'brighter' if unit > 1.0 else 'darker'} than the stage "
                   f"is made for: colours taken in units of {unit:.4g}")
-        gains = ViewGains(len(scene)) if cfg.exposure == "per_view" else None
-        model = NeuSModel(cfg, background=masks is None, gains=gains)
+        model = NeuSModel(cfg, background=masks is None, num_views=len(scene))
         source = f"images ({'with' if masks is not None else 'without'} masks)"
         print(f"nefii geometry: NeuS on {len(scene)} views {scene.width}x{scene.height} from {scene.root}, "
               f"{'with masks' if masks is not None else 'no masks: NeRF++ background'}"
-              f"{', a gain per view' if gains is not None else ''}; unit sphere centre "
+              f"{', a gain per view' if model.gains is not None else ''}; unit sphere centre "
               f"{tuple(round(c, 4) for c in norm.center)}, radius {norm.radius:.4f}; device {device}, {threads} threads")
     data_print = fingerprint(scene, args.from_mesh)
     if checkpoint is not None and manifest is not None and manifest.data is not None:

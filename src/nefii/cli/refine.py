@@ -24,7 +24,6 @@ from ..data import load_scene
 from ..data.downscale import training_images
 from ..data.scene import SceneData
 from ..errors import InputError
-from ..fit.exposure import ViewGains
 from ..fit.outputs import FittedRun, load_run, write_outputs
 from ..fit.session import prepare_fit
 from ..fit.trainer import NonFiniteLoss
@@ -81,8 +80,7 @@ def geometry_anchor(folder: Path, loaded: LoadedSDF, scene: SceneData) -> Geomet
         raise InputError(folder / "checkpoints", f"no checkpoint of the geometry stage's last step ({cfg.steps}): "
                                                  "refine keeps that stage's objective and needs its colour network")
     masks = scene.masks if "with masks" in source else None
-    gains = ViewGains(len(scene)) if cfg.exposure == "per_view" else None
-    model = NeuSModel(cfg, background=masks is None, gains=gains)
+    model = NeuSModel(cfg, background=masks is None, num_views=len(scene))
     ckpt.restore(lambda state: model.load_state_dict(state["model"]), "the geometry stage's model")
     model.sdf.load_state_dict(loaded.sdf.state_dict())
     return GeometryAnchor(model, ImageObjective.from_views(cfg, scene, loaded.normalization, masks, torch.device("cpu"),

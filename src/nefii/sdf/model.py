@@ -15,8 +15,9 @@ from .volume import composite_weights, neus_alpha, sphere_bounds, stratified_dep
 
 
 class NeuSModel(nn.Module):
-    def __init__(self, cfg: GeometryConfig, background: bool, gains: ViewGains | None = None) -> None:
-        """``gains``: the training views' gains (``exposure = per_view``), trained with the rest."""
+    def __init__(self, cfg: GeometryConfig, background: bool, num_views: int | None = None) -> None:
+        """``num_views``: the training views, which get a gain each with ``exposure = per_view`` (trained with
+        the rest); None: no views (an SDF fitted to a mesh)."""
         super().__init__()
         torch.manual_seed(cfg.seed)
         self.sdf = SDFNetwork(make_encoding(cfg.sdf.encoding), cfg.sdf.hidden, cfg.sdf.layers, cfg.feature_dim,
@@ -25,7 +26,7 @@ class NeuSModel(nn.Module):
                                   make_encoding(cfg.color.encoding) if cfg.appearance_encoding else None)
         self.sharpness = Sharpness()
         self.background = Background() if background else None
-        self.gains = gains
+        self.gains = ViewGains(num_views) if cfg.exposure == "per_view" and num_views is not None else None
 
 
 @dataclass(frozen=True)

@@ -92,8 +92,7 @@ class ImageObjective:
         anneal = min(1.0, step / max(cfg.anneal_end * cfg.steps, 1.0))
         out = render_rays(model, self.origins[i], self.directions[i], cfg, generator, train=True, cos_anneal=anneal)
         if model.gains is not None:                  # the photo is the scene's radiance times its view's gain
-            out = dataclasses.replace(out, rgb=out.rgb * model.gains(torch.div(i, self.view_pixels,
-                                                                               rounding_mode="floor")))
+            out = dataclasses.replace(out, rgb=out.rgb * model.gains(i // self.view_pixels))
         extra = uniform_in_ball(cfg.batch_rays, generator, self.origins.device)
         _, g_extra, _ = model.sdf.with_gradient(extra, create_graph=True)
         terms = geometry_loss(out, self.rgb[i], None if self.mask is None else self.mask[i], g_extra,
