@@ -1,4 +1,6 @@
 """A dataset without a mesh: ``nefii fit`` reconstructs its geometry first (``RUN/geometry``) and fits on it."""
+import json
+
 from fit_fixtures import write_rendered_scene
 from nefii.cli.main import main
 from nefii.fit.outputs import load_run
@@ -9,13 +11,14 @@ def test_fit_without_a_mesh_reconstructs_the_geometry_first(tmp_path, capsys):
     (scene / "mesh.ply").unlink()
     run = tmp_path / "run"
     fit = ["fit", str(scene), "--out", str(run), "--preset", "tiny", "--quiet", "--set", "steps=6",
-           "--set", "threads=1", "--set", "exposure=per_view"]
+           "--set", "threads=1", "--set", "exposure=per_view", "--set", "seed=3"]
     assert main(fit) == 0
     out = capsys.readouterr().out
     assert "the dataset has no mesh: reconstructing" in out and "nefii geometry: done" in out
     stage = out.split("nefii geometry: NeuS", 1)[1].splitlines()[0]
     assert "device cpu, 1 threads" in stage and "a gain per view" in stage, "the fit's threads and gains reach it"
     geo = run / "geometry"
+    assert json.loads((geo / "config.json").read_text())["seed"] == 3, "the fit's seed seeds its reconstruction"
     for name in ("sdf.pt", "mesh.ply", "run.json"):
         assert (geo / name).is_file(), name
     fitted = load_run(run)

@@ -86,15 +86,16 @@ class GeometryStageFailed(Exception):
 
 
 def _stage_overrides(cfg: FitConfig) -> list[str]:
-    """The fit's settings its geometry stage shares: the threads, and a gain per view (the same photos)."""
-    return ([f"threads={cfg.threads}"] if cfg.threads else []) + (
+    """The fit's settings its geometry stage shares: the seed (a second seed of the one command is a second
+    reconstruction too), the threads, and a gain per view (the same photos)."""
+    return [f"seed={cfg.seed}"] + ([f"threads={cfg.threads}"] if cfg.threads else []) + (
         ["exposure=per_view"] if cfg.exposure == "per_view" else [])
 
 
 def _reconstruct(args: argparse.Namespace, cfg: FitConfig, ctx: DistContext) -> Path:
     """The dataset has no mesh and none was given: ``nefii geometry`` into ``RUN/geometry`` (its own run folder:
     resumed where a stopped fit left it, reused once it is done), the geometry preset named as the fit's, with
-    the fit's threads and per-view gains (the fit's other settings are the fit's own)."""
+    the fit's seed, threads and per-view gains (the fit's other settings are the fit's own)."""
     from . import geometry as geometry_cli
     from ..sdf.config import GEOMETRY_PRESETS
     from ..sdf.outputs import MESH_FILE, SDF_FILE
