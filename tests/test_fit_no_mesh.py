@@ -56,3 +56,19 @@ def test_a_fit_stopped_in_its_geometry_stage_goes_on_from_it(tmp_path, monkeypat
     assert main(fit) == 0, "the same command goes on (no --resume needed: the fit had no step yet)"
     assert "nefii geometry: resumed from" in capsys.readouterr().out
     assert (run / "model.pt").is_file() and (run / "geometry" / "sdf.pt").is_file()
+
+
+def test_the_gpu_fits_reconstruction_takes_the_gpu_geometry_preset(tmp_path, monkeypatch, capsys):
+    import nefii.cli.geometry as geometry_cli
+    scene = write_rendered_scene(tmp_path / "scene", res=16, n_train=6, n_test=1)
+    (scene / "mesh.ply").unlink()
+    presets = []
+
+    def stage(args):                                          # the stage is only asked for; nothing is reconstructed
+        presets.append(args.preset)
+        return 1
+
+    monkeypatch.setattr(geometry_cli, "run", stage)
+    assert main(["fit", str(scene), "--out", str(tmp_path / "run"), "--preset", "gpu", "--quiet"]) != 0
+    assert presets == ["gpu"]
+    assert "preset gpu" in capsys.readouterr().out

@@ -49,6 +49,13 @@ def test_geometry_config_round_trips_and_rejects_unknown_fields():
         resolve_geometry_config("huge", [])
 
 
+def test_the_gpu_preset_is_the_cpu_method_with_more_rays_a_step():
+    cpu, gpu = resolve_geometry_config("cpu", []), resolve_geometry_config("gpu", [])
+    assert gpu.preset == "gpu" and gpu.batch_rays == 8 * cpu.batch_rays and gpu.steps == cpu.steps // 2
+    same = {k: v for k, v in dataclasses.asdict(gpu).items() if k not in ("preset", "batch_rays", "steps")}
+    assert same == {k: v for k, v in dataclasses.asdict(cpu).items() if k in same}, "networks and priors as cpu"
+
+
 def test_sphere_bounds_are_the_analytic_entry_and_exit():
     o = torch.tensor([[0.0, 0.0, -3.0], [0.0, 0.5, -3.0], [0.0, 2.0, -3.0], [0.0, 0.0, 0.0]])
     d = torch.tensor([[0.0, 0.0, 1.0]]).expand(4, 3)
@@ -393,6 +400,13 @@ def test_geometry_runs_end_to_end_with_and_without_masks(tiny_scene, tmp_path, m
     # and the loaded SDF is the trained one: zero on its own mesh's vertices (within a voxel)
     u = loaded.normalization.to_unit(torch.from_numpy(np.asarray(mesh.vertices)).float())
     assert float(loaded.sdf.sdf(u).abs().max()) < 2.0 / (loaded.config.mesh_resolution - 1) * 2
+
+
+def test_the_gpu_preset_on_the_cpu_is_warned_about(tiny_scene, tmp_path, capsys):
+    assert main(["geometry", str(tiny_scene), "--out", str(tmp_path / "geo"), "--preset", "gpu", "--quiet",
+                 "--device", "cpu", "--set", "threads=1", "--set", "steps=2", "--set", "batch_rays=32",
+                 "--set", "mesh_resolution=32"]) == 0
+    assert "the gpu preset on the CPU" in capsys.readouterr().err
 
 
 def test_geometry_from_a_mesh_recovers_it(tiny_scene, tmp_path):

@@ -96,6 +96,9 @@ def _geometry(args: argparse.Namespace, cfg: GeometryConfig, device: torch.devic
             cfg = _read_config(out / "config.json")
         checkpoint = resume_point(out, "geometry", manifest, _warn, lambda line: print(f"nefii geometry: {line}"))
     threads = set_threads(cfg.threads)
+    if cfg.preset == "gpu" and device.type == "cpu":
+        _warn("the gpu preset on the CPU casts about 4 times the cpu preset's rays in all (use --device cuda, or "
+              "--preset cpu)")
     scene = load_scene(args.data, "train")
     scene, line = training_images(scene, cfg.max_image_side)
     if line:

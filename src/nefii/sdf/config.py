@@ -11,7 +11,7 @@ from ..fit.config import NetworkConfig, network_numbers
 
 @dataclass
 class GeometryConfig:
-    preset: Literal["cpu", "paper", "tiny"] = "cpu"
+    preset: Literal["cpu", "gpu", "paper", "tiny"] = "cpu"
     """the preset these values started from"""
     steps: Annotated[int, Range(1)] = 12000
     """optimisation steps (``cpu``: 12000, 17 minutes for 64 views at 128 px on one core: twice 6000's time,
@@ -122,11 +122,15 @@ def geometry_memory_bytes(cfg: GeometryConfig) -> float:
     return 4.0 * (4 * (sdf_params + color_params) + activations) + grid
 
 
+_CPU: dict[str, Any] = {
+    "batch_rays": 256, "samples": 16, "importance": 16, "coarse_to_fine": 0.5,
+    "normal_smoothness": 0.05, "normal_smoothness_start": 0.5,
+    "sdf": {"encoding": {"levels": 10, "log2_table_size": 16, "max_resolution": 128}, "hidden": 64, "layers": 1},
+    "color": {"hidden": 64, "layers": 2}}
+
 GEOMETRY_PRESETS: dict[str, dict[str, Any]] = {
-    "cpu": {"batch_rays": 256, "samples": 16, "importance": 16, "coarse_to_fine": 0.5,
-            "normal_smoothness": 0.05, "normal_smoothness_start": 0.5,
-            "sdf": {"encoding": {"levels": 10, "log2_table_size": 16, "max_resolution": 128}, "hidden": 64, "layers": 1},
-            "color": {"hidden": 64, "layers": 2}},
+    "cpu": _CPU,
+    "gpu": {**_CPU, "steps": 6000, "batch_rays": 2048},
     "paper": {
         "steps": 300000, "batch_rays": 512, "samples": 64, "importance": 64, "importance_rounds": 4,
         "background_samples": 32, "lr": 5e-4, "lr_networks": 5e-4, "anneal_end": 50000 / 300000, "feature_dim": 512,
@@ -141,8 +145,10 @@ GEOMETRY_PRESETS: dict[str, dict[str, Any]] = {
         "color": {"hidden": 16, "layers": 1},
     },
 }
-"""``cpu``: hash-grid SDF for 2 CPU cores; ``paper``: NeuS's networks (8x256 SDF MLP, 6 frequencies) for a GPU;
-``tiny``: tests."""
+"""``cpu``: hash-grid SDF for 2 CPU cores; ``gpu``: the ``cpu`` networks at 8 times the rays a step and half the
+steps, for one GPU, where a step of either costs about the same (kernel launches): surfaces closer to the truth in
+about half the time there (docs/experiments.md, 2026-11-30, twenty-ninth session); ``paper``: NeuS's networks
+(8x256 SDF MLP, 6 frequencies) for a GPU; ``tiny``: tests."""
 
 
 def resolve_geometry_config(preset: str, overrides: list[str]) -> GeometryConfig:
