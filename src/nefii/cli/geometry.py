@@ -97,8 +97,10 @@ def _geometry(args: argparse.Namespace, cfg: GeometryConfig, device: torch.devic
         checkpoint = resume_point(out, "geometry", manifest, _warn, lambda line: print(f"nefii geometry: {line}"))
     threads = set_threads(cfg.threads)
     if cfg.preset == "gpu" and device.type == "cpu":
-        _warn("the gpu preset on the CPU casts about 4 times the cpu preset's rays in all (use --device cuda, or "
-              "--preset cpu)")
+        cpu, gpu = resolve_geometry_config("cpu", []), resolve_geometry_config("gpu", [])
+        ratio = gpu.batch_rays * gpu.steps / (cpu.batch_rays * cpu.steps)
+        _warn(f"the gpu preset on the CPU casts {ratio:.1f} times the cpu preset's rays in all (use --device cuda, "
+              "or --preset cpu)")
     scene = load_scene(args.data, "train")
     scene, line = training_images(scene, cfg.max_image_side)
     if line:
