@@ -2,20 +2,24 @@
 fit's albedo / roughness with reconstructed against ground-truth geometry.
 
     python -m benchmarks.geometry [--scenes bowl cup ...] [--res 128] [--views 64] [--masks on off]
-                                  [--fits [SCENE ...]] [--refine] [--fit-res 128] [--jobs 2] [--set key=value ...]
+                                  [--fits [SCENE ...]] [--refine] [--fit-res 128] [--jobs 2] [--preset cpu]
+                                  [--set key=value ...]
 
-For each scene (and each masks setting) runs ``nefii geometry`` (``cpu`` preset) and measures the
+For each scene (and each masks setting) runs ``nefii geometry`` (``--preset``, default ``cpu``) and measures the
 chamfer distance (relative to the scene's bounding-box diagonal) and normal angle error against
 ``mesh.ply``, wall time and peak memory. With ``--fits``, also ``nefii fit`` + ``nefii eval`` on
 the reconstructed geometry (mesh mode) beside the ground-truth-geometry fit that
 ``benchmarks.quality`` caches. With ``--refine``, each fit on a reconstruction is copied and refined by
 ``nefii refine`` (default settings), its refined mesh measured as the reconstruction is and the copy evaluated.
-Runs live in ``benchmarks/.cache/geometry`` and are reused.
+Runs live in ``benchmarks/.cache/geometry``, in a folder per scene, masks and resolved stage settings, and are
+reused only at the same settings.
 Writes ``benchmarks/results/geometry.md``.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import json
 import shutil
 import time
@@ -32,6 +36,7 @@ from nefii.evaluate.table1 import ViewArrays, mean_scores, view_scores
 from nefii.fit.model import material_at
 from nefii.fit.outputs import load_run
 from nefii.raycast import MeshGeometry, Rays
+from nefii.sdf.config import resolve_geometry_config
 from nefii.sdf.metrics import mesh_distance
 
 from .common import (CACHE, all_steps_wall_min, code_version, fit_and_eval, machine, nefii, scene, set_flags, stamp,
@@ -39,13 +44,24 @@ from .common import (CACHE, all_steps_wall_min, code_version, fit_and_eval, mach
 from .quality import run_dir, run_one
 
 
-def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[str]) -> dict:
-    # a variant (--set) has a folder of its own: the preset's cached run must not stand in for it
-    out = CACHE / "geometry" / "_".join([f"{data.name}_masks_{masks}", *(kv.replace("/", "-") for kv in extra)])
+def geometry_folder(data_name: str, masks: str, preset: str, extra: list[str]) -> Path:
+    """The cached stage's folder: named by the scene, the masks, the preset, the overrides and a digest of the
+    settings the stage resolves to (threads and checkpointing aside), so that neither a variant nor a run made
+    at other defaults (an older preset's steps) stands in for the one asked for."""
+    aside = ("threads", "checkpoint_every_s")
+    cfg = {k: v for k, v in dataclasses.asdict(resolve_geometry_config(preset, extra)).items() if k not in aside}
+    digest = hashlib.sha1(json.dumps(cfg, sort_keys=True).encode()).hexdigest()[:8]
+    named = [kv.replace("/", "-") for kv in extra if kv.split("=")[0] not in aside]
+    return CACHE / "geometry" / "_".join([f"{data_name}_masks_{masks}", preset, *named, digest])
+
+
+def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[str], preset: str) -> dict:
+    out = geometry_folder(data.name, masks, preset, extra)
     if not (out / "geometry_stats.json").exists():
         sets = set_flags(extra, threads)
         resume = ["--resume"] if (out / "checkpoints").exists() else []
-        nefii("geometry", str(data), "--out", str(out), "--masks", masks, "--quiet", *resume, *sets)
+        nefii("geometry", str(data), "--out", str(out), "--masks", masks, "--preset", preset, "--quiet", *resume,
+              *sets)
     stats = json.loads((out / "geometry_stats.json").read_text())
     d = mesh_distance(trimesh.load(out / "mesh.ply", force="mesh"), trimesh.load(data / "mesh.ply", force="mesh"))
     wall_min, resumed = all_steps_wall_min(stats)
@@ -131,6 +147,7 @@ def main() -> None:
     ap.add_argument("--refine", action="store_true", help="also refine each fit on a reconstruction (nefii refine)")
     ap.add_argument("--fit-res", type=int, default=128)
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--preset", default="cpu", help="the geometry stage's preset (gpu: run where a GPU is)")
     ap.add_argument("--set", dest="extra", action="append", default=[], help="geometry-stage config override")
     ap.add_argument("--fit-set", dest="fit_sets", action="append", default=[], metavar="KEY=VALUE",
                     help="fit config override for the fits on the reconstructions (give --fit-tag with it)")
@@ -144,7 +161,7 @@ def main() -> None:
     t0 = time.time()
     jobs = [(datas[s], s, m) for s in args.scenes for m in args.masks]
     with ThreadPoolExecutor(args.jobs) as pool:
-        rows = list(pool.map(lambda j: geometry_run(*j, threads, args.extra), jobs))
+        rows = list(pool.map(lambda j: geometry_run(*j, threads, args.extra, args.preset), jobs))
     fitted = [r for r in rows if args.fits is not None and (not args.fits or r["scene"] in args.fits)]
     with ThreadPoolExecutor(args.jobs) as pool:
         fits = list(pool.map(lambda r: fit_on(scene(r["scene"], args.fit_res, args.views), r["folder"], threads,
@@ -161,7 +178,7 @@ def main() -> None:
     any_fit = bool(fitted)
     lines = [f"# geometry ({stamp()})", "",
              f"Machine: {machine()}. Scenes {args.res}x{args.res}, {args.views} training views; `nefii geometry` "
-             f"`cpu` preset{' + ' + ' '.join(args.extra) if args.extra else ''}; {args.jobs} at a time "
+             f"`{args.preset}` preset{' + ' + ' '.join(args.extra) if args.extra else ''}; {args.jobs} at a time "
              f"({threads or 'all'} thread(s) each). This invocation {(time.time() - t0) / 60:.1f} min; "
              f"code {code_version()}.", *([args.note] if args.note else []), "",
              "Chamfer: mean of both directed mean nearest-neighbour distances over 100k surface samples each, "

@@ -27,3 +27,14 @@ def test_a_results_note_is_a_paragraph_from_text_or_a_file(tmp_path):
     assert note_lines(" rows refitted at abc. ") == ["rows refitted at abc.", ""]
     (tmp_path / "note.md").write_text("How the rows were made:\ntwo at a time.\n")
     assert note_lines(f"@{tmp_path / 'note.md'}") == ["How the rows were made:\ntwo at a time.", ""]
+
+
+def test_a_cached_geometry_stage_is_reused_only_at_the_same_settings():
+    from benchmarks.geometry import geometry_folder
+
+    base = geometry_folder("bowl_128", "on", "cpu", [])
+    assert base == geometry_folder("bowl_128", "on", "cpu", ["threads=2"])        # threads do not change a stage
+    others = {geometry_folder("bowl_128", "on", "cpu", ["steps=6000"]), geometry_folder("bowl_128", "on", "gpu", []),
+              geometry_folder("bowl_128", "off", "cpu", []), geometry_folder("cup_128", "on", "cpu", [])}
+    assert base not in others and len(others) == 4
+    assert "steps=6000" in geometry_folder("bowl_128", "on", "cpu", ["steps=6000"]).name
