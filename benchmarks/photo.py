@@ -32,6 +32,7 @@ from pathlib import Path
 
 from .common import (CACHE, code_version, fit_and_eval, fit_threads, machine, scene, set_flags, stamp,
                      write_results)
+from .geometry import geometry_folder
 from .quality import SCENES, run_dir
 
 CONFIGS = {
@@ -82,7 +83,7 @@ def reference(name: str, config: str) -> dict | None:
     """The clean-input fit on the same geometry path."""
     if config == "geometry":  # benchmarks.geometry's masked reconstruction and its fit
         data = scene(name)
-        return metrics(CACHE / "geometry" / f"{data.name}_masks_on" / f"fit_{data.name}")
+        return metrics(geometry_folder(data.name, "on", "cpu", []) / f"fit_{data.name}")
     return metrics(run_dir(name, "full"))
 
 
