@@ -13,7 +13,7 @@ nerfstudio ``transforms.json``), then
 - ``geometry``: ``nefii fit PHOTO --set exposure=per_view`` with no mesh, the one command a user types: the fit
   reconstructs the surface first (``nefii geometry``'s stage into ``RUN/geometry``, no masks: the background
   model; at the stage's own image size, a gain per view) and fits on it; the whole path from a capture to
-  materials (~25 min a scene, two at a time on 2 cores);
+  materials (~30 min a scene, two at a time on 2 cores);
 
 each scored by ``nefii eval RUN --data CLEAN`` on the clean test views (albedo aligned per view and
 channel, so the capture's unknown overall exposure does not count). The clean-input reference is the
