@@ -36,7 +36,7 @@ from nefii.evaluate.table1 import ViewArrays, mean_scores, view_scores
 from nefii.fit.model import material_at
 from nefii.fit.outputs import load_run
 from nefii.raycast import MeshGeometry, Rays
-from nefii.sdf.config import resolve_geometry_config
+from nefii.sdf.config import GEOMETRY_PRESETS, resolve_geometry_config
 from nefii.sdf.metrics import mesh_distance
 
 from .common import (CACHE, all_steps_wall_min, code_version, fit_and_eval, machine, nefii, scene, set_flags, stamp,
@@ -147,7 +147,8 @@ def main() -> None:
     ap.add_argument("--refine", action="store_true", help="also refine each fit on a reconstruction (nefii refine)")
     ap.add_argument("--fit-res", type=int, default=128)
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--preset", default="cpu", help="the geometry stage's preset (gpu: run where a GPU is)")
+    ap.add_argument("--preset", default="cpu", choices=sorted(GEOMETRY_PRESETS),
+                    help="the geometry stage's preset (gpu: run where a GPU is)")
     ap.add_argument("--set", dest="extra", action="append", default=[], help="geometry-stage config override")
     ap.add_argument("--fit-set", dest="fit_sets", action="append", default=[], metavar="KEY=VALUE",
                     help="fit config override for the fits on the reconstructions (give --fit-tag with it)")
