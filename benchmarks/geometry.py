@@ -48,11 +48,18 @@ def geometry_folder(data_name: str, masks: str, preset: str, extra: list[str]) -
     """The cached stage's folder: named by the scene, the masks, the preset, the overrides and a digest of the
     settings the stage resolves to (threads and checkpointing aside), so that neither a variant nor a run made
     at other defaults (an older preset's steps) stands in for the one asked for."""
-    aside = ("threads", "checkpoint_every_s")
-    cfg = {k: v for k, v in dataclasses.asdict(resolve_geometry_config(preset, extra)).items() if k not in aside}
-    digest = hashlib.sha1(json.dumps(cfg, sort_keys=True).encode()).hexdigest()[:8]
-    named = [kv.replace("/", "-") for kv in extra if kv.split("=")[0] not in aside]
-    return CACHE / "geometry" / "_".join([f"{data_name}_masks_{masks}", preset, *named, digest])
+    named = [kv.replace("/", "-") for kv in extra if kv.split("=")[0] not in _ASIDE]
+    return CACHE / "geometry" / "_".join([f"{data_name}_masks_{masks}", preset, *named, stage_digest(preset, extra)])
+
+
+_ASIDE = ("threads", "checkpoint_every_s")
+
+
+def stage_digest(preset: str, extra: list[str]) -> str:
+    """8 hex digits of the settings the geometry stage resolves to (threads and checkpointing aside): a cached
+    stage, or a run that made one, is reused only where they match."""
+    cfg = {k: v for k, v in dataclasses.asdict(resolve_geometry_config(preset, extra)).items() if k not in _ASIDE}
+    return hashlib.sha1(json.dumps(cfg, sort_keys=True).encode()).hexdigest()[:8]
 
 
 def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[str], preset: str) -> dict:

@@ -32,7 +32,7 @@ from pathlib import Path
 
 from .common import (CACHE, code_version, fit_and_eval, fit_threads, machine, scene, set_flags, stamp,
                      write_results)
-from .geometry import geometry_folder
+from .geometry import geometry_folder, stage_digest
 from .quality import SCENES, run_dir
 
 CONFIGS = {
@@ -61,7 +61,10 @@ def photo_scene(name: str) -> tuple[Path, Path]:
 
 
 def photo_run(name: str, config: str, seed: int) -> Path:
-    return CACHE / "runs" / f"photo_{name}_{config}_s{seed}"
+    """The cached run; a ``geometry`` run's name holds its stage's settings (a run made at another preset's steps is
+    not reused)."""
+    stage = f"_{stage_digest('cpu', [])}" if config == "geometry" else ""
+    return CACHE / "runs" / f"photo_{name}_{config}_s{seed}{stage}"
 
 
 def run_one(name: str, config: str, seed: int, threads: int) -> None:

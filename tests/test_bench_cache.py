@@ -38,3 +38,12 @@ def test_a_cached_geometry_stage_is_reused_only_at_the_same_settings():
               geometry_folder("bowl_128", "off", "cpu", []), geometry_folder("cup_128", "on", "cpu", [])}
     assert base not in others and len(others) == 4
     assert "steps=6000" in geometry_folder("bowl_128", "on", "cpu", ["steps=6000"]).name
+
+
+def test_a_photo_run_through_the_geometry_stage_is_named_by_its_settings():
+    from benchmarks.geometry import stage_digest
+    from benchmarks.photo import photo_run
+
+    assert photo_run("cup", "geometry", 0).name == f"photo_cup_geometry_s0_{stage_digest('cpu', [])}"
+    assert stage_digest("cpu", []) != stage_digest("cpu", ["steps=12000"])
+    assert photo_run("cup", "mesh", 0).name == "photo_cup_mesh_s0"                  # no stage: named as before
