@@ -44,15 +44,16 @@ from .common import (CACHE, all_steps_wall_min, code_version, fit_and_eval, mach
 from .quality import run_dir, run_one
 
 
+_ASIDE = ("threads", "checkpoint_every_s")
+"""stage settings that do not change what a stage computes"""
+
+
 def geometry_folder(data_name: str, masks: str, preset: str, extra: list[str]) -> Path:
     """The cached stage's folder: named by the scene, the masks, the preset, the overrides and a digest of the
     settings the stage resolves to (threads and checkpointing aside), so that neither a variant nor a run made
     at other defaults (an older preset's steps) stands in for the one asked for."""
     named = [kv.replace("/", "-") for kv in extra if kv.split("=")[0] not in _ASIDE]
     return CACHE / "geometry" / "_".join([f"{data_name}_masks_{masks}", preset, *named, stage_digest(preset, extra)])
-
-
-_ASIDE = ("threads", "checkpoint_every_s")
 
 
 def stage_digest(preset: str, extra: list[str]) -> str:
