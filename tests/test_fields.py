@@ -5,7 +5,7 @@ import pytest
 import torch
 from torch.func import functional_call
 
-from nefii.fields.encodings import FourierFeatures, HashGrid
+from nefii.fields.encodings import FourierFeatures, HashGrid, _Gather
 from nefii.fields.environment import EnvmapEnvironment, SGEnvironment
 from nefii.fields.material import MaterialField
 from nefii.render.equirect import pixel_directions, pixel_solid_angles
@@ -33,6 +33,22 @@ def test_hashgrid_position_gradient_and_double_backward_match_finite_differences
     f = lambda p, t: functional_call(h, {"table": t}, (p,))
     assert torch.autograd.gradcheck(f, (x, table))
     assert torch.autograd.gradgradcheck(f, (x, table))
+
+
+def test_hashgrid_float32_gather_reads_and_scatters_the_same_rows():
+    """Two float32 features are gathered as one float64 word (a fast path): bit for bit ``table[idx]``, and its
+    backward the sum of the gradients of each row's reads, for repeated and for unused rows alike."""
+    torch.manual_seed(3)
+    table = torch.randn(50, 2, requires_grad=True)
+    idx = torch.randint(0, 40, (7, 3, 8))                      # rows 40-49 never read, others read often
+    rows = _Gather.apply(table, idx)
+    assert rows.dtype == torch.float32 and torch.equal(rows, table.detach()[idx])
+    grad = torch.randn(7, 3, 8, 2)
+    rows.backward(grad)
+    want = torch.zeros(50, 2).index_put_((idx.reshape(-1),), grad.reshape(-1, 2), accumulate=True)
+    assert torch.allclose(table.grad, want, atol=1e-6) and not table.grad[40:].any()
+    odd = torch.randn(50, 3)                                   # three features: the plain row gather
+    assert torch.equal(_Gather.apply(odd, idx), odd[idx])
 
 
 def test_hashgrid_is_continuous_and_exact_on_dense_vertices():

@@ -35,13 +35,21 @@ _PRIMES = (1, 2654435761, 805459861)
 
 
 class _Gather(torch.autograd.Function):
-    """``table[idx]`` whose backward is one ``index_add_`` (faster on CPU than embedding's backward)."""
+    """``table[idx]`` whose backward is one ``index_add_`` (faster on CPU than embedding's backward).
+
+    A row of two float32 features is read as one float64 (the same 8 bytes): one load per corner
+    instead of a strided pair, about three times faster on the CPU; the values are the same bits."""
 
     @staticmethod
     def forward(ctx, table: Tensor, idx: Tensor) -> Tensor:
         ctx.save_for_backward(idx)
         ctx.table_shape = table.shape
-        return table.index_select(0, idx.reshape(-1)).view(*idx.shape, table.shape[-1])
+        flat = idx.reshape(-1)
+        if table.shape[-1] == 2 and table.dtype == torch.float32 and table.is_contiguous():
+            rows = table.view(torch.float64).view(-1).index_select(0, flat).view(torch.float32)
+        else:
+            rows = table.index_select(0, flat)
+        return rows.view(*idx.shape, table.shape[-1])
 
     @staticmethod
     def backward(ctx, grad: Tensor):
@@ -120,5 +128,6 @@ class HashGrid(nn.Module):
         fx, fy, fz = frac.unbind(-1)
         gx, gy, gz = 1 - fx, 1 - fy, 1 - fz
         w = torch.stack([zy * xw for zy in (gz * gy, gz * fy, fz * gy, fz * fy) for xw in (gx, fx)], -1)
-        out = torch.stack([(f[..., k] * w).sum(-1) for k in range(self.features_per_level)], -1)   # (N, L, F)
+        # ``unbind``, not ``f[..., k]``: the backward of an index fills a zero tensor of ``f``'s size per feature
+        out = torch.stack([(fk * w).sum(-1) for fk in f.unbind(-1)], -1)                               # (N, L, F)
         return out.reshape(*bs, self.out_dim)
