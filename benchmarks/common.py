@@ -1,6 +1,8 @@
 """Shared by the benchmark scripts: machine facts, scene caching, results tables."""
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import os
 import platform
@@ -72,6 +74,21 @@ def fit_threads(threads: int | None, jobs: int) -> int:
 def set_flags(overrides: list[str], threads: int) -> list[str]:
     """``--set KEY=VALUE`` arguments of a nefii command for ``overrides`` and the thread count."""
     return [x for kv in [*overrides, f"threads={threads}"] for x in ("--set", kv)]
+
+
+FIT_ASIDE = ("threads", "checkpoint_every_s", "preview_every")
+"""fit settings that do not change what a fit computes"""
+
+
+def fit_digest(overrides: Sequence[str], preset: str = "cpu") -> str:
+    """8 hex digits of the settings a fit resolves to from ``preset`` and ``overrides`` (threads, checkpointing and
+    previews aside): a cached run is reused only where they match, so neither a variant nor a run made at other
+    defaults stands in for the one asked for."""
+    from nefii.fit.config import resolve_config
+
+    kept = [kv for kv in overrides if kv.split("=")[0] not in FIT_ASIDE]
+    cfg = {k: v for k, v in dataclasses.asdict(resolve_config(preset, kept)).items() if k not in FIT_ASIDE}
+    return hashlib.sha1(json.dumps(cfg, sort_keys=True).encode()).hexdigest()[:8]
 
 
 def nefii(*args: str, what: str = "") -> None:

@@ -16,10 +16,12 @@ import os
 import re
 import shutil
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_threads, machine, note_lines, run_figures,
+from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_digest, fit_threads, machine, note_lines,
+                     run_figures,
                      scene, set_flags, stamp, write_results)
 
 COLOUR = re.compile(r"r_\d+(_diffuse|_specular)?\.exr")
@@ -54,17 +56,19 @@ def exposed_scene(clean: Path, factor: float) -> Path:
     return out
 
 
-def run_dir(name: str, factor: float, seed: int) -> Path:
-    return CACHE / "runs" / "exposure" / f"{name}_x{factor:g}_s{seed}"
+def run_dir(name: str, factor: float, seed: int, extra: Sequence[str] = ()) -> Path:
+    """Named by the scene, the exposure factor, the seed and a digest of the fit settings
+    (:func:`benchmarks.common.fit_digest`)."""
+    return CACHE / "runs" / "exposure" / f"{name}_x{factor:g}_s{seed}_{fit_digest([f'seed={seed}', *extra])}"
 
 
-def table(names: list[str], factors: list[float], seeds: list[int]) -> list[str]:
+def table(names: list[str], factors: list[float], seeds: list[int], extra: Sequence[str] = ()) -> list[str]:
     rows = ["| scene | exposure | seed | albedo PSNR | roughness MSE | specular PSNR | fit min | thr | code |",
             "|---|---|---|---|---|---|---|---|---|"]
     for name in names:
         for f in factors:
             for s in seeds:
-                r = run_figures(run_dir(name, f, s))
+                r = run_figures(run_dir(name, f, s, extra))
                 if r is not None:
                     rows.append(f"| {name} | x{f:g} | {s} | {r['albedo_psnr']:.2f} | {r['roughness_mse']:.4f} | "
                                 f"{r['specular_psnr']:.2f} | {r['fit_s'] / 60:.1f}{'*' if r['resumed'] else ''} | "
@@ -94,7 +98,8 @@ def main() -> None:
 
     def one(job) -> None:
         data, name, f, s = job
-        fit_and_eval(data, run_dir(name, f, s), set_flags([f"seed={s}", *args.extra], threads), args.eval_spp,
+        fit_and_eval(data, run_dir(name, f, s, args.extra), set_flags([f"seed={s}", *args.extra], threads),
+                     args.eval_spp,
                      f"{name} x{f:g} seed {s}", args.extra)
 
     with ThreadPoolExecutor(args.jobs) as pool:
@@ -106,7 +111,7 @@ def main() -> None:
         f"{args.eval_spp} spp, masked, albedo aligned per view and channel (specular PSNR compares radiance as it is, "
         f"so it moves with the exposure). This invocation: {len(jobs)} runs in "
         f"{(time.time() - t0) / 60:.1f} min (cached runs reused); current code {code_version()}.", "",
-        *note_lines(args.note), *table(args.scenes, args.factors, args.seeds)])
+        *note_lines(args.note), *table(args.scenes, args.factors, args.seeds, args.extra)])
 
 
 if __name__ == "__main__":

@@ -13,33 +13,35 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_threads, machine, note_lines, run_figures, scene,
-                     set_flags, stamp, write_results)
+from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_digest, fit_threads, machine, note_lines,
+                     run_figures, scene, set_flags, stamp, write_results)
 
 SWAPS = ("bowl@studio", "leaning@overcast", "cup@noon", "corner@sunset")
 """each object under a light of another scene: hard sun on the soft-lit objects, soft light on the sunlit ones"""
 
 
-def run_dir(name: str, seed: int) -> Path:
-    return CACHE / "runs" / "heldout" / f"{name}_s{seed}"
+def run_dir(name: str, seed: int, extra: Sequence[str] = ()) -> Path:
+    """Named by the scene, the seed and a digest of the fit settings (:func:`benchmarks.common.fit_digest`)."""
+    return CACHE / "runs" / "heldout" / f"{name}_s{seed}_{fit_digest([f'seed={seed}', *extra])}"
 
 
 def run_one(data: Path, name: str, seed: int, extra: list[str], threads: int, eval_spp: int) -> None:
     """``nefii fit`` then ``nefii eval`` of one scene at one seed, unless done."""
-    fit_and_eval(data, run_dir(name, seed), set_flags([f"seed={seed}", *extra], threads), eval_spp,
+    fit_and_eval(data, run_dir(name, seed, extra), set_flags([f"seed={seed}", *extra], threads), eval_spp,
                  f"{name} seed {seed}", extra)
 
 
-def table(names: list[str], seeds: list[int]) -> list[str]:
+def table(names: list[str], seeds: list[int], extra: Sequence[str] = ()) -> list[str]:
     """Per-run rows, then per-scene means with issue 27's targets (albedo >= 26 dB, roughness MSE <= 0.02)."""
     rows = ["| scene | seed | albedo PSNR | roughness MSE | specular PSNR | rgb PSNR | fit min | thr | code |",
             "|---|---|---|---|---|---|---|---|---|"]
     means = ["| scene | seeds | albedo PSNR | roughness MSE | albedo >= 26 dB | roughness <= 0.02 |", "|---|---|---|---|---|---|"]
     for name in names:
-        runs = {s: run_figures(run_dir(name, s)) for s in seeds}
+        runs = {s: run_figures(run_dir(name, s, extra)) for s in seeds}
         for s, r in runs.items():
             if r is not None:
                 rows.append(f"| {name} | {s} | {r['albedo_psnr']:.2f} | {r['roughness_mse']:.4f} | "
@@ -78,7 +80,7 @@ def main() -> None:
         f"{' + ' + ' '.join(args.extra) if args.extra else ''}; eval at {args.eval_spp} spp, masked, albedo aligned "
         f"per view and channel. This invocation: {len(jobs)} runs in {(time.time() - t0) / 60:.1f} min (cached runs "
         f"reused); current code {code_version()}.", "", *note_lines(args.note),
-        *table(args.scenes, args.seeds)])
+        *table(args.scenes, args.seeds, args.extra)])
 
 
 if __name__ == "__main__":

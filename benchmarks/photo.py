@@ -30,7 +30,7 @@ import json
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import (CACHE, code_version, fit_and_eval, fit_threads, machine, scene, set_flags, stamp,
+from .common import (CACHE, code_version, fit_and_eval, fit_digest, fit_threads, machine, scene, set_flags, stamp,
                      write_results)
 from .geometry import geometry_folder, stage_digest
 from .quality import SCENES, run_dir
@@ -60,11 +60,16 @@ def photo_scene(name: str) -> tuple[Path, Path]:
     return clean, photo
 
 
+def photo_sets(config: str, seed: int) -> list[str]:
+    """The fit settings of a ``config`` run at ``seed``."""
+    return [*CONFIGS[config], f"seed={seed}", f"max_image_side={RES}"]
+
+
 def photo_run(name: str, config: str, seed: int) -> Path:
-    """The cached run; a ``geometry`` run's name holds its stage's settings (a run made at another preset's steps is
-    not reused)."""
+    """The cached run, named by a digest of its fit settings and, for a ``geometry`` run, of its stage's (a run made
+    at other defaults, another preset's steps say, is not reused)."""
     stage = f"_{stage_digest('cpu', [])}" if config == "geometry" else ""
-    return CACHE / "runs" / f"photo_{name}_{config}_s{seed}{stage}"
+    return CACHE / "runs" / f"photo_{name}_{config}_s{seed}{stage}_{fit_digest(photo_sets(config, seed))}"
 
 
 def run_one(name: str, config: str, seed: int, threads: int) -> None:
@@ -73,7 +78,7 @@ def run_one(name: str, config: str, seed: int, threads: int) -> None:
     if (run / "eval" / "metrics.json").exists():
         return
     where = [] if config == "geometry" else ["--mesh", str(clean / "mesh.ply")]
-    fit_and_eval(photo, run, [*where, *set_flags([*CONFIGS[config], f"seed={seed}", f"max_image_side={RES}"], threads)],
+    fit_and_eval(photo, run, [*where, *set_flags(photo_sets(config, seed), threads)],
                  64, f"{name}/{config}", eval_args=["--data", str(clean)])
 
 

@@ -4,8 +4,8 @@
                                  [--res 128] [--views 64] [--jobs 2] [--set key=value ...]
 
 Each (scene, config) is ``nefii fit`` (``cpu`` preset plus the ablation's switch) then
-``nefii eval``; runs live in ``benchmarks/.cache/runs`` and are reused when complete (each records
-the commit that fitted it). Writes ``benchmarks/results/quality.md`` with the masked Table 1 columns,
+``nefii eval``; runs live in ``benchmarks/.cache/runs``, in a folder per scene, config and digest of the fit
+settings they resolve to, and are reused when complete (each records the commit that fitted it). Writes ``benchmarks/results/quality.md`` with the masked Table 1 columns,
 wall time, peak memory and code version of every completed run of the default scenes and configs
 (so runs done at different times accumulate; those not run yet are listed), machine and versions. ``--jobs 2`` runs two fits at once with one thread each
 (two 2-thread processes on 2 cores slowed each other down ~10x before nefii set OpenMP threads to wait passively; not remeasured since).
@@ -17,10 +17,12 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_threads, machine, note_lines, run_figures, scene,
+from .common import (CACHE, code_version, fit_and_eval, fit_arguments, fit_digest, fit_threads, machine, note_lines,
+                     run_figures, scene,
                      set_flags, stamp, write_results)
 
 CONFIGS = {
@@ -40,19 +42,22 @@ COLUMNS = ("roughness_mse", "albedo_psnr", "albedo_ssim", "specular_psnr", "spec
 SCENES = ("bowl", "leaning", "cup", "corner")
 
 
-def run_dir(name: str, config: str) -> Path:
-    return CACHE / "runs" / f"{name}_{config}"
+def run_dir(name: str, config: str, extra: Sequence[str] = ()) -> Path:
+    """The cached run of ``config`` (plus the ``extra`` overrides) on scene ``name``: named by both and by a digest of
+    the fit settings they resolve to (:func:`benchmarks.common.fit_digest`)."""
+    switches = {**CONFIGS, **BASELINES}[config]
+    return CACHE / "runs" / f"{name}_{config}_{fit_digest([*switches, *extra])}"
 
 
 def run_one(data: Path, name: str, config: str, extra: list[str], threads: int, eval_spp: int) -> None:
     switches = {**CONFIGS, **BASELINES}[config]
-    fit_and_eval(data, run_dir(name, config), set_flags([*switches, *extra], threads), eval_spp, f"{name}/{config}",
-                 extra)
+    fit_and_eval(data, run_dir(name, config, extra), set_flags([*switches, *extra], threads), eval_spp,
+                 f"{name}/{config}", extra)
 
 
-def relight_one(data: Path, name: str, spp: int) -> None:
+def relight_one(data: Path, name: str, spp: int, extra: Sequence[str] = ()) -> None:
     """``nefii relight`` of the scene's full-model run under each of its relighting environments."""
-    run = run_dir(name, "full")
+    run = run_dir(name, "full", extra)
     for env in sorted((data / "relight").glob("*.exr")):
         done, record = run / "relight" / "metrics.json", run / "relight" / env.stem / "render.json"
         if (done.exists() and env.stem in json.loads(done.read_text()) and record.exists()
@@ -62,8 +67,8 @@ def relight_one(data: Path, name: str, spp: int) -> None:
                         str(spp), "--quiet"], check=True, capture_output=True)
 
 
-def relight_rows(name: str) -> list[str]:
-    path = run_dir(name, "full") / "relight" / "metrics.json"
+def relight_rows(name: str, extra: Sequence[str] = ()) -> list[str]:
+    path = run_dir(name, "full", extra) / "relight" / "metrics.json"
     if not path.exists():
         return []
     blob = json.loads(path.read_text())
@@ -71,9 +76,9 @@ def relight_rows(name: str) -> list[str]:
             for env, e in sorted(blob.items()) if isinstance(e, dict) and e.get("psnr") is not None]
 
 
-def read_row(name: str, config: str) -> dict | None:
+def read_row(name: str, config: str, extra: Sequence[str] = ()) -> dict | None:
     """The completed run's figures (:func:`run_figures`), or None."""
-    figures = run_figures(run_dir(name, config))
+    figures = run_figures(run_dir(name, config, extra))
     return None if figures is None else {"scene": name, "config": config, **figures}
 
 
@@ -113,9 +118,9 @@ def main() -> None:
     with ThreadPoolExecutor(args.jobs) as pool:
         list(pool.map(lambda j: run_one(*j, args.extra, threads, args.eval_spp), jobs))
         if args.relight_spp > 0 and "full" in args.configs:
-            list(pool.map(lambda s: relight_one(datas[s], s, args.relight_spp), args.scenes))
+            list(pool.map(lambda s: relight_one(datas[s], s, args.relight_spp, args.extra), args.scenes))
     order = list(dict.fromkeys([*SCENES, *args.scenes]))
-    found = {(s, c): read_row(s, c) for s in order for c in CONFIGS}
+    found = {(s, c): read_row(s, c, args.extra) for s in order for c in CONFIGS}
     rows = [r for r in found.values() if r is not None]
     missing = [f"{s}/{c}" for (s, c), r in found.items() if r is None]
     lines = [f"# quality ({stamp()})", "",
@@ -140,7 +145,7 @@ def main() -> None:
     if missing:
         lines += ["", "Not run yet: " + ", ".join(missing) + "."]
     write_results("quality.md", lines)
-    relit = [row for s in order for row in relight_rows(s)]
+    relit = [row for s in order for row in relight_rows(s, args.extra)]
     if relit:
         write_results("relight.md", [
             f"# relight ({stamp()})", "", f"Machine: {machine()}. `nefii relight` of each scene's `full` run of "

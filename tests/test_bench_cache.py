@@ -41,9 +41,27 @@ def test_a_cached_geometry_stage_is_reused_only_at_the_same_settings():
 
 
 def test_a_photo_run_through_the_geometry_stage_is_named_by_its_settings():
+    from benchmarks.common import fit_digest
     from benchmarks.geometry import stage_digest
-    from benchmarks.photo import photo_run
+    from benchmarks.photo import photo_run, photo_sets
 
-    assert photo_run("cup", "geometry", 0).name == f"photo_cup_geometry_s0_{stage_digest('cpu', [])}"
+    assert photo_run("cup", "geometry", 0).name == (f"photo_cup_geometry_s0_{stage_digest('cpu', [])}_"
+                                                   f"{fit_digest(photo_sets('geometry', 0))}")
     assert stage_digest("cpu", []) != stage_digest("cpu", ["steps=12000"])
-    assert photo_run("cup", "mesh", 0).name == "photo_cup_mesh_s0"                  # no stage: named as before
+    assert photo_run("cup", "mesh", 0).name == f"photo_cup_mesh_s0_{fit_digest(photo_sets('mesh', 0))}"   # no stage
+    assert photo_run("cup", "mesh", 0) != photo_run("cup", "mesh", 1)
+
+
+def test_a_cached_fit_is_reused_only_at_the_same_settings():
+    from benchmarks.common import fit_digest
+    from benchmarks.heldout import run_dir as heldout_run
+    from benchmarks.quality import run_dir
+
+    full = run_dir("bowl", "full")
+    assert full == run_dir("bowl", "full", ["threads=1", "checkpoint_every_s=5"])   # neither changes a fit
+    others = {run_dir("bowl", "full", ["seed=1"]), run_dir("bowl", "full", ["steps=6000"]),
+              run_dir("bowl", "indirect_off"), run_dir("cup", "full")}
+    assert full not in others and len(others) == 4
+    assert run_dir("bowl", "indirect_off").name.startswith("bowl_indirect_off_")
+    assert fit_digest(["seed=0"]) == fit_digest([]) != fit_digest(["seed=1"])    # the default seed is seed 0
+    assert heldout_run("cup", 0) != heldout_run("cup", 0, ["num_samples=16"])
