@@ -76,19 +76,23 @@ def set_flags(overrides: list[str], threads: int) -> list[str]:
     return [x for kv in [*overrides, f"threads={threads}"] for x in ("--set", kv)]
 
 
+def settings_digest(cfg: object, aside: Sequence[str]) -> str:
+    """8 hex digits of a resolved config dataclass's settings, the fields ``aside`` left out: a cached run is reused
+    only where they match, so neither a variant nor a run made at other defaults stands in for the one asked for."""
+    kept = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in aside}
+    return hashlib.sha1(json.dumps(kept, sort_keys=True).encode()).hexdigest()[:8]
+
+
 FIT_ASIDE = ("threads", "checkpoint_every_s", "preview_every")
 """fit settings that do not change what a fit computes"""
 
 
 def fit_digest(overrides: Sequence[str], preset: str = "cpu") -> str:
-    """8 hex digits of the settings a fit resolves to from ``preset`` and ``overrides`` (threads, checkpointing and
-    previews aside): a cached run is reused only where they match, so neither a variant nor a run made at other
-    defaults stands in for the one asked for."""
+    """:func:`settings_digest` of the fit settings ``preset`` and ``overrides`` resolve to (threads, checkpointing and
+    previews aside)."""
     from nefii.fit.config import resolve_config
 
-    kept = [kv for kv in overrides if kv.split("=")[0] not in FIT_ASIDE]
-    cfg = {k: v for k, v in dataclasses.asdict(resolve_config(preset, kept)).items() if k not in FIT_ASIDE}
-    return hashlib.sha1(json.dumps(cfg, sort_keys=True).encode()).hexdigest()[:8]
+    return settings_digest(resolve_config(preset, list(overrides)), FIT_ASIDE)
 
 
 def nefii(*args: str, what: str = "") -> None:

@@ -18,8 +18,6 @@ Writes ``benchmarks/results/geometry.md``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import hashlib
 import json
 import shutil
 import time
@@ -39,8 +37,8 @@ from nefii.raycast import MeshGeometry, Rays
 from nefii.sdf.config import GEOMETRY_PRESETS, resolve_geometry_config
 from nefii.sdf.metrics import mesh_distance
 
-from .common import (CACHE, all_steps_wall_min, code_version, fit_and_eval, machine, nefii, scene, set_flags, stamp,
-                     write_results)
+from .common import (CACHE, all_steps_wall_min, code_version, fit_and_eval, machine, nefii, scene, set_flags,
+                     settings_digest, stamp, write_results)
 from .quality import run_dir, run_one
 
 
@@ -57,10 +55,9 @@ def geometry_folder(data_name: str, masks: str, preset: str, extra: list[str]) -
 
 
 def stage_digest(preset: str, extra: list[str]) -> str:
-    """8 hex digits of the settings the geometry stage resolves to (threads and checkpointing aside): a cached
-    stage, or a run that made one, is reused only where they match."""
-    cfg = {k: v for k, v in dataclasses.asdict(resolve_geometry_config(preset, extra)).items() if k not in _ASIDE}
-    return hashlib.sha1(json.dumps(cfg, sort_keys=True).encode()).hexdigest()[:8]
+    """:func:`settings_digest` of the settings the geometry stage resolves to (threads and checkpointing aside): a
+    cached stage, or a run that made one, is reused only where they match."""
+    return settings_digest(resolve_geometry_config(preset, extra), _ASIDE)
 
 
 def geometry_run(data: Path, name: str, masks: str, threads: int, extra: list[str], preset: str) -> dict:

@@ -52,6 +52,7 @@ def test_geometry_config_round_trips_and_rejects_unknown_fields():
 def test_the_gpu_preset_is_the_cpu_method_with_more_rays_a_step():
     cpu, gpu = resolve_geometry_config("cpu", []), resolve_geometry_config("gpu", [])
     assert gpu.preset == "gpu" and gpu.batch_rays == 8 * cpu.batch_rays and gpu.steps == cpu.steps // 3
+    assert gpu.batch_rays * gpu.steps > 2 * cpu.batch_rays * cpu.steps, "more rays in all, in fewer steps"
     same = {k: v for k, v in dataclasses.asdict(gpu).items() if k not in ("preset", "batch_rays", "steps")}
     assert same == {k: v for k, v in dataclasses.asdict(cpu).items() if k in same}, "networks and priors as cpu"
 

@@ -38,7 +38,7 @@ class _Gather(torch.autograd.Function):
     """``table[idx]`` whose backward is one ``index_add_`` (faster on CPU than embedding's backward).
 
     A row of two float32 features is read as one float64 (the same 8 bytes): one load per corner
-    instead of a strided pair, about three times faster on the CPU; the values are the same bits."""
+    instead of a strided pair, about twice as fast on the CPU; the values are the same bits."""
 
     @staticmethod
     def forward(ctx, table: Tensor, idx: Tensor) -> Tensor:
