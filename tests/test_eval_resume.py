@@ -114,3 +114,38 @@ def test_ctrl_c_keeps_the_views_scored_and_releases_the_run(fitted, tmp_path, mo
     assert main(["eval", str(fitted), "--spp", "2", "--quiet"]) == 0
     assert "1 of 3 views already scored" in capsys.readouterr().out
     assert not (fitted / ".eval.partial").exists()
+
+
+def test_material_only_scores_the_full_evals_material_to_the_bit(fitted, tmp_path):
+    """``spp = 0`` (``--material-only``) draws the same sub-pixel rays as a full eval's material layers, so its
+    albedo and roughness scores are the full eval's exactly; nothing of the colour is scored or written."""
+    run = load_run(fitted)
+    scene = load_scene(run.data, "test")
+    full, material = tmp_path / "full", tmp_path / "material"
+    evaluate_run(run, scene, full, 4, 0)
+    evaluate_run(run, scene, material, 0, 0)
+    a, b = (json.loads((d / "metrics.json").read_text()) for d in (full, material))
+    for protocol in ("masked", "whole_image"):
+        for key in ("albedo_psnr", "albedo_ssim", "roughness_mse"):
+            assert b[protocol][key] is not None and b[protocol][key] == a[protocol][key], (protocol, key)
+        for key in ("rgb_psnr", "rgb_ssim", "specular_psnr", "specular_ssim"):
+            assert a[protocol][key] is not None and b[protocol][key] is None, (protocol, key)
+    assert (material / "0_albedo.exr").read_bytes() == (full / "0_albedo.exr").read_bytes()
+    assert not list(material.glob("*_rgb.exr")) and not list(material.glob("*_specular.exr"))
+    assert "material only" in b["notes"]["spp"]
+
+
+def test_material_only_needs_the_ground_truths_material(fitted, tmp_path, capsys):
+    """A test split without albedo or roughness maps has nothing a material-only eval could score: a one-line
+    error naming the data, exit 2, and no eval written."""
+    import shutil
+    data = tmp_path / "photos"
+    shutil.copytree(load_run(fitted).data, data)
+    for p in list((data / "test").glob("*_albedo.exr")) + list((data / "test").glob("*_roughness.exr")):
+        p.unlink()
+    copy = tmp_path / "run"
+    shutil.copytree(fitted, copy, ignore=shutil.ignore_patterns("eval"))
+    assert main(["eval", str(copy), "--data", str(data), "--material-only", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--material-only" in err and str(data) in err and len(err.strip().splitlines()) == 1
+    assert not (copy / "eval").exists()

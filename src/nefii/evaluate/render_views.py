@@ -37,11 +37,12 @@ MAX_SUBPIXELS = 16
 class ViewPrediction:
     """One view; linear values; object quantities are 0 outside ``mask``."""
 
-    rgb: Float[Tensor, "H W 3"]
-    """path-traced colour (Eq. 2-4) on the object, the environment where the view ray escapes"""
-    specular: Float[Tensor, "H W 3"]
+    rgb: Float[Tensor, "H W 3"] | None
+    """path-traced colour (Eq. 2-4) on the object, the environment where the view ray escapes (None: the
+    material only was rendered, ``num_samples = 0``)"""
+    specular: Float[Tensor, "H W 3"] | None
     """the specular lobe's share of ``rgb`` on the object"""
-    diffuse: Float[Tensor, "H W 3"]
+    diffuse: Float[Tensor, "H W 3"] | None
     albedo: Float[Tensor, "H W 3"]
     roughness: Float[Tensor, "H W"]
     normal: Float[Tensor, "H W 3"]
@@ -153,7 +154,8 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
     """``num_samples`` estimator samples per pixel, spread over its colour's sub-pixel rays (a single ray through
     the pixel centre when ``num_samples < 4``); the material layers and the mask read 4 x 4 rays a pixel at any
     ``num_samples`` (a second set of rays where the colour's are fewer), or the colour's rays where
-    ``filtered_layers`` is false (a preview's). ``chunk`` rays at a time: 512 keeps a chunk's (directions x 128
+    ``filtered_layers`` is false (a preview's). ``num_samples = 0``: the material layers only, no colour traced
+    (``rgb``, ``specular`` and ``diffuse`` are None). ``chunk`` rays at a time: 512 keeps a chunk's (directions x 128
     lobes) tensors near the CPU's cache; 4096 took 1.2x as long a view at 256 spp on 2 threads.
 
     On the CPU the chunks are rendered by ``workers`` threads (default: torch's thread count), each running
@@ -191,16 +193,20 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
         hits = torch.zeros(n_px, device=device).index_add_(0, pixel, hit.valid.float())
         return _Pass(sums, hits, d.reshape(n_px, grid * grid, 3).mean(1))
 
-    layers = one_pass(k_material, per_ray if k == k_material else 0)
-    colour = layers if k == k_material else one_pass(k, per_ray)
-
+    if num_samples < 0:
+        raise ValueError(f"num_samples: {num_samples} is negative")
+    layers = one_pass(k_material, per_ray if k == k_material and num_samples > 0 else 0)
     material = layers.sums.divided(layers.hits)
-    seen = material if colour is layers else colour.sums.divided(colour.hits)
-    on = colour.hits > 0
-    rgb = torch.where(on.unsqueeze(-1), seen.rgb, model.env.radiance(normalize(colour.centre_dirs)))
     shape3 = (H, W, 3)
-    return ViewPrediction(rgb=rgb.reshape(shape3), specular=seen.specular.reshape(shape3),
-                          diffuse=seen.diffuse.reshape(shape3), albedo=material.albedo.reshape(shape3),
+    rgb = specular = diffuse = None
+    if num_samples > 0:
+        colour = layers if k == k_material else one_pass(k, per_ray)
+        seen = material if colour is layers else colour.sums.divided(colour.hits)
+        on = colour.hits > 0
+        rgb = torch.where(on.unsqueeze(-1), seen.rgb,
+                          model.env.radiance(normalize(colour.centre_dirs))).reshape(shape3)
+        specular, diffuse = seen.specular.reshape(shape3), seen.diffuse.reshape(shape3)
+    return ViewPrediction(rgb=rgb, specular=specular, diffuse=diffuse, albedo=material.albedo.reshape(shape3),
                           roughness=material.roughness.reshape(H, W),
                           normal=torch.where((layers.hits > 0).unsqueeze(-1), normalize(material.normal),
                                              material.normal).reshape(shape3),

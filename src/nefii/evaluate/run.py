@@ -30,6 +30,10 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().float().numpy()
 
 
+def _np_or_none(t: torch.Tensor | None) -> np.ndarray | None:
+    return None if t is None else _np(t)
+
+
 def ground_truth(scene: SceneData, v: int) -> ViewArrays:
     """View ``v``'s photo and whatever ground-truth maps the dataset has for it."""
     gt = scene.ground_truth
@@ -62,7 +66,11 @@ def score_and_write_view(out: Path, index: int, name: str, pred: ViewArrays, tru
     for layer, arr in layers.items():
         if arr is not None:
             write_exr(out / f"{index}_{layer}.exr", arr)
-    rows, flags = [(tonemap_display(truth.rgb), tonemap_display(pred.rgb))], [False]
+    rows: list[tuple[np.ndarray, np.ndarray]] = []
+    flags: list[bool] = []
+    if pred.rgb is not None:
+        rows.append((tonemap_display(truth.rgb), tonemap_display(pred.rgb)))
+        flags.append(False)
     if truth.albedo is not None:
         rows.append((truth.albedo, pred.albedo * scale))
         flags.append(True)
@@ -72,7 +80,8 @@ def score_and_write_view(out: Path, index: int, name: str, pred: ViewArrays, tru
     if truth.specular is not None and pred.specular is not None:
         rows.append((tonemap_display(truth.specular), tonemap_display(pred.specular)))
         flags.append(False)
-    write_grid(out / f"{index}_grid.png", rows, flags)
+    if rows:
+        write_grid(out / f"{index}_grid.png", rows, flags)
     return {"index": index, "name": name, "albedo_scale": [float(s) for s in scale], **scores}
 
 
@@ -123,7 +132,9 @@ def evaluate_run(fitted: FittedRun, scene: SceneData, out: Path, spp: int, seed:
                  say: Callable[[str], None] = lambda line: None) -> dict[str, dict]:
     """Render the views of ``scene`` (a test split; ``max_views`` of them spread evenly, 0: all) with
     ``fitted``'s model and the estimator it was trained with, score them, and write ``out`` (metrics.json/md,
-    per-view EXRs and grids, the recovered environment beside the true one) as a whole. Each view is committed
+    per-view EXRs and grids, the recovered environment beside the true one) as a whole. ``spp = 0`` scores the
+    material only (albedo and roughness against the dataset's maps, which it must have): no colour is
+    path-traced, and the specular and RGB columns are empty. Each view is committed
     as it is scored (:mod:`nefii.evaluate.partial`): a rerun after an interruption scores only the views left,
     and writes what an uninterrupted eval writes. Returns the mean scores per protocol."""
     geometry = fitted.open_geometry()
@@ -142,7 +153,7 @@ def evaluate_run(fitted: FittedRun, scene: SceneData, out: Path, spp: int, seed:
         index = scene.indices[v]
         g = torch.Generator(device=device).manual_seed(view_seed(seed, index))
         pred = render_view(fitted.model, geometry, scene.cameras, v, spp, g, transport)
-        p = ViewArrays(_np(pred.rgb), _np(pred.albedo), _np(pred.roughness), _np(pred.specular))
+        p = ViewArrays(_np_or_none(pred.rgb), _np(pred.albedo), _np(pred.roughness), _np_or_none(pred.specular))
         mask = eval_mask(scene, v, _np(pred.mask))
         done[v] = score_and_write_view(tmp, index, scene.names[v], p, ground_truth(scene, v), mask,
                                        {"normal": _np(pred.normal), "cache": _np(pred.cache)})
@@ -155,7 +166,8 @@ def evaluate_run(fitted: FittedRun, scene: SceneData, out: Path, spp: int, seed:
     shown = f"{len(chosen)} test views" if len(chosen) == len(scene) else \
         f"{len(chosen)} of {len(scene)} test views, spread evenly (--max-views)"
     notes = {"albedo": "aligned per view and channel by median(gt/pred) over the mask, linear; scored in sRGB",
-             "spp": f"{spp} estimator samples per pixel (x3 directions)",
+             "spp": (f"{spp} estimator samples per pixel (x3 directions)" if spp > 0 else
+                     "material only (--material-only): no colour path-traced, specular and RGB not scored"),
              "views": f"{shown} from {scene.root}"}
     means = finish_metrics(tmp, [done[v] for v in chosen], notes)
     partial.finish()

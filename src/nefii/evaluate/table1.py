@@ -29,7 +29,8 @@ PROTOCOLS = ("masked", "whole_image")
 class ViewArrays:
     """One view as numpy arrays (linear; ``None`` where the ground truth lacks the map)."""
 
-    rgb: np.ndarray
+    rgb: np.ndarray | None
+    """None: no colour (a material-only eval's prediction)"""
     albedo: np.ndarray | None
     roughness: np.ndarray | None
     specular: np.ndarray | None
@@ -67,7 +68,8 @@ def view_scores(pred: ViewArrays, gt: ViewArrays, mask: np.ndarray) -> tuple[dic
             s["albedo_psnr"], s["albedo_ssim"] = _colour_scores(aligned, gt.albedo, mask, protocol)
         if gt.specular is not None and pred.specular is not None:
             s["specular_psnr"], s["specular_ssim"] = _colour_scores(pred.specular, gt.specular, mask, protocol)
-        s["rgb_psnr"], s["rgb_ssim"] = _colour_scores(pred.rgb, gt.rgb, mask, protocol)
+        if gt.rgb is not None and pred.rgb is not None:
+            s["rgb_psnr"], s["rgb_ssim"] = _colour_scores(pred.rgb, gt.rgb, mask, protocol)
         blocks[protocol] = s
     return blocks, scale
 
