@@ -1,6 +1,7 @@
 """An eval stopped part way goes on from the views it scored and writes what an uninterrupted one writes;
 ``--max-views`` scores a spread subset."""
 import json
+import shutil
 
 import pytest
 
@@ -138,7 +139,6 @@ def test_material_only_scores_the_full_evals_material_to_the_bit(fitted, tmp_pat
 def test_material_only_needs_the_ground_truths_material(fitted, tmp_path, capsys):
     """A test split without albedo or roughness maps has nothing a material-only eval could score: a one-line
     error naming the data, exit 2, and no eval written."""
-    import shutil
     data = tmp_path / "photos"
     shutil.copytree(load_run(fitted).data, data)
     for p in list((data / "test").glob("*_albedo.exr")) + list((data / "test").glob("*_roughness.exr")):

@@ -163,6 +163,8 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
     process used about one core of two (docs/experiments.md, 2026-11-26). Every chunk draws from its own
     generator, seeded from ``generator``, and the chunks are summed in order: the result is the same for
     any number of workers."""
+    if num_samples < 0:
+        raise ValueError(f"num_samples: {num_samples} is negative")
     H, W = cameras.height, cameras.width
     device = next(model.parameters()).device
     k = subpixel_grid(num_samples)
@@ -193,8 +195,6 @@ def render_view(model: NeFIIModel, geometry: Geometry, cameras: Cameras, view: i
         hits = torch.zeros(n_px, device=device).index_add_(0, pixel, hit.valid.float())
         return _Pass(sums, hits, d.reshape(n_px, grid * grid, 3).mean(1))
 
-    if num_samples < 0:
-        raise ValueError(f"num_samples: {num_samples} is negative")
     layers = one_pass(k_material, per_ray if k == k_material and num_samples > 0 else 0)
     material = layers.sums.divided(layers.hits)
     shape3 = (H, W, 3)
