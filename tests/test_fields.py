@@ -5,6 +5,8 @@ import pytest
 import torch
 from torch.func import functional_call
 
+from autograd_graph import graph_names
+
 from nefii.fields.encodings import FourierFeatures, HashGrid, _Gather
 from nefii.fields.environment import EnvmapEnvironment, SGEnvironment
 from nefii.fields.material import MaterialField
@@ -49,6 +51,30 @@ def test_hashgrid_float32_gather_reads_and_scatters_the_same_rows():
     assert torch.allclose(table.grad, want, atol=1e-6) and not table.grad[40:].any()
     odd = torch.randn(50, 3)                                   # three features: the plain row gather
     assert torch.equal(_Gather.apply(odd, idx), odd[idx])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_hashgrid_compiled_cpu_path_matches_the_pytorch_path(dtype):
+    """Points without a gradient take the compiled loop (nefii.fields.hashgrid_cpu); points with one the PyTorch
+    path. Same features and the same table gradient for random cotangents, over dense and hashed levels, points on
+    the box's faces and outside it (clamped)."""
+    torch.manual_seed(4)
+    h = HashGrid(num_levels=6, features_per_level=2, log2_table_size=9, base_resolution=2, max_resolution=60,
+                 init_scale=1.0).to(dtype)
+    assert bool(h.dense[0]) and not bool(h.dense[-1])
+    x = torch.rand(400, 3, dtype=dtype) * 1.2 - 0.1
+    x[:6] = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1.0, 0.5, 0.0], [0.5, 0.25, 1.0], [-2.0, 3.0, 0.5],
+                          [1 / 3, 2 / 3, 0.999999]], dtype=dtype)
+    fast = h(x)
+    assert "FusedHashEncodeBackward" in graph_names(fast)
+    slow = h(x.clone().requires_grad_())
+    assert slow.grad_fn is not None and "FusedHashEncodeBackward" not in graph_names(slow)
+    tol = dict(rtol=1e-5, atol=1e-5) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(fast, slow.detach(), **tol)
+    cot = torch.randn(fast.shape, dtype=dtype)
+    g_fast, = torch.autograd.grad((fast * cot).sum(), h.table)
+    g_slow, = torch.autograd.grad((slow * cot).sum(), h.table)
+    torch.testing.assert_close(g_fast, g_slow, **tol)
 
 
 def test_hashgrid_is_continuous_and_exact_on_dense_vertices():

@@ -12,6 +12,8 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from .hashgrid_cpu import fused_encode
+
 
 class FourierFeatures(nn.Module):
     """``x -> [x, sin(2^k pi x), cos(2^k pi x)]_{k < num_freqs}`` per coordinate."""
@@ -111,6 +113,11 @@ class HashGrid(nn.Module):
 
     def forward(self, x: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs E"]:
         bs = x.shape[:-1]
+        if x.device.type == "cpu" and self.table.device.type == "cpu" and not x.requires_grad:
+            # no gradient to the points wanted: one compiled loop (nefii.fields.hashgrid_cpu)
+            out = fused_encode(self.table, x.reshape(-1, 3), self.resolution.long(), self.offset, self.num_dense,
+                               self.table_size)
+            return out.reshape(*bs, self.out_dim)
         x = x.reshape(-1, 3).clamp(0.0, 1.0)
         res = self.resolution.view(1, -1, 1)
         pos = x.unsqueeze(1) * res                                               # (N, L, 3)

@@ -61,8 +61,42 @@ def sg_lobes(w: Float[Tensor, "*bs 3"], sg: SGMixture) -> Float[Tensor, "*bs K"]
 
 
 def sg_eval(w: Float[Tensor, "*bs 3"], sg: SGMixture) -> Float[Tensor, "*bs 3"]:
-    """Radiance of the mixture in directions ``w``: ``sum_k mu_k G_k(w)``."""
-    return sg_lobes(w, sg) @ sg.amplitude
+    """Radiance of the mixture in directions ``w``: ``sum_k mu_k G_k(w)``.
+
+    With a gradient wanted for the lobes and not for ``w`` (the estimator's escaped rays, the background
+    pixels), :class:`_SGRadiance` computes it with a hand-written backward, about half the time of autograd's."""
+    if w.requires_grad or not torch.is_grad_enabled():
+        return sg_lobes(w, sg) @ sg.amplitude
+    scaled_axes = (sg.axis * sg.sharpness.unsqueeze(-1)).T                      # (3, K)
+    out = _SGRadiance.apply(w.reshape(-1, 3), scaled_axes, -sg.sharpness, sg.amplitude)
+    return out.reshape(*w.shape[:-1], 3)
+
+
+class _SGRadiance(torch.autograd.Function):
+    """``(w (M, 3), A (3, K), b (K,), mu (K, 3)) -> sum_k mu_k exp(max(w . A_k + b_k, EXP_FLOOR))`` ``(M, 3)``,
+    differentiable in ``A``, ``b`` and ``mu`` (not ``w``). Autograd's version of the same three operations
+    (product, floor, exp, product) keeps the floor's mask and the exponent apart and takes matrix products
+    with an inner dimension of 3 in layouts the CPU's BLAS is slow at; this backward is
+    ``dE = g mu^T``, ``dmu = E^T g``, ``dX = dE * E`` where the floor is not hit, ``dA = w^T dX``, ``db = sum dX``."""
+
+    @staticmethod
+    def forward(ctx, w: Tensor, A: Tensor, b: Tensor, mu: Tensor) -> Tensor:
+        x = torch.addmm(b, w, A)
+        live = x > EXP_FLOOR
+        E = x.clamp_min_(EXP_FLOOR).exp_()                                      # (M, K)
+        out = torch.stack([E @ mu[:, c].contiguous() for c in range(3)], -1)  # three mat-vec: faster than E @ mu
+        ctx.save_for_backward(w, E, live, mu)
+        return out
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        w, E, live, mu = ctx.saved_tensors
+        g = g.contiguous()
+        grad_mu = (g.T @ E).T if ctx.needs_input_grad[3] else None
+        dX = (g @ mu.T.contiguous()).mul_(E).mul_(live)                        # (M, K)
+        grad_A = w.T @ dX if ctx.needs_input_grad[1] else None
+        grad_b = dX.sum(0) if ctx.needs_input_grad[2] else None
+        return None, grad_A, grad_b, grad_mu
 
 
 def sg_detach_sharper(sg: SGMixture, limit: float) -> SGMixture:
