@@ -1,17 +1,18 @@
-"""The hash grid's encoding and its table gradient as two compiled CPU loops (numba).
+"""The hash grid's encoding and its table gradient as one compiled CPU loop (numba), run either way.
 
 :class:`~nefii.fields.encodings.HashGrid` in PyTorch builds every level's 8 corner indices, gathers the
 corners, multiplies by the trilinear weights and sums: a dozen tensor operations of ``N x L x 8`` elements,
-each a pass over memory, and as many again in the backward. Here one loop does a point's levels in
-registers: the forward reads the table and writes ``(N, L, F)``; the backward recomputes the corners and
-adds ``w * grad`` into the table's gradient. Same indexing and weights as the PyTorch path (dense levels
+each a pass over memory, and as many again in the backward. Here one loop (:func:`_sweep`) does a point's
+levels in registers: forward it reads the table and writes ``(N, L, F)``; backward it recomputes the corners
+and adds ``w * grad`` into the table's gradient. Same indexing and weights as the PyTorch path (dense levels
 row-major over ``(r + 1)^3`` corners, hashed levels by Mueller et al.'s primes); only the order of the
 floating-point sums differs.
 
 What it does not do: a gradient with respect to the points (the geometry stage's SDF and the refinement
 need it, and its double backward for the eikonal term); :class:`HashGrid` keeps the PyTorch path there.
 One thread: the loops are memory-bound and short (a fit's batch), and a thread pool would wait on the
-other process when the CPU is shared (issue 28's contention figures).
+other process when the CPU is shared (issue 28's contention figures). numba compiles the loop on first use
+(~2.5 s) and caches it beside this module.
 """
 from __future__ import annotations
 
@@ -23,13 +24,14 @@ from torch import Tensor
 _P1, _P2 = 2654435761, 805459861
 
 
-@numba.njit(cache=True, nogil=True, fastmath=False)
-def _corners(px: float, py: float, pz: float, r: int, dense: bool, size_mask: int, idx: np.ndarray,
-             w: np.ndarray) -> None:
-    """The 8 corner rows (within the level) and trilinear weights of point ``(px, py, pz)`` in ``[0, 1]^3`` at
+@numba.njit(cache=True, nogil=True)
+def _corners(x: np.ndarray, n: int, r: int, dense: bool, size_mask: int, idx: np.ndarray, w: np.ndarray) -> None:
+    """The 8 corner rows (within the level) and trilinear weights of point ``x[n]``, clamped to ``[0, 1]^3``, at
     resolution ``r``, in the PyTorch path's corner order ``(z, y, x)``."""
     rf = float(r)
-    fx, fy, fz = px * rf, py * rf, pz * rf
+    fx = min(max(x[n, 0], 0.0), 1.0) * rf
+    fy = min(max(x[n, 1], 0.0), 1.0) * rf
+    fz = min(max(x[n, 2], 0.0), 1.0) * rf
     x0, y0, z0 = min(np.floor(fx), rf - 1.0), min(np.floor(fy), rf - 1.0), min(np.floor(fz), rf - 1.0)
     tx, ty, tz = fx - x0, fy - y0, fz - z0
     ix, iy, iz = int(x0), int(y0), int(z0)
@@ -49,44 +51,26 @@ def _corners(px: float, py: float, pz: float, r: int, dense: bool, size_mask: in
 
 
 @numba.njit(cache=True, nogil=True)
-def _forward(x: np.ndarray, table: np.ndarray, res: np.ndarray, offset: np.ndarray, num_dense: int,
-             size_mask: int, out: np.ndarray) -> None:
-    """``out[n, l, f] = sum_c w_c table[offset_l + idx_c, f]`` for points ``x (N, 3)``."""
-    idx = np.empty(8, np.int64)
-    w = np.empty(8, x.dtype)
-    F = table.shape[1]
+def _sweep(x: np.ndarray, table: np.ndarray, res: np.ndarray, offset: np.ndarray, num_dense: int, size_mask: int,
+           features: np.ndarray, backward: bool) -> None:
+    """Every point ``x (N, 3)`` at every level: the forward (``backward`` False) writes
+    ``features[n, l, f] = sum_c w_c table[offset_l + idx_c, f]``; the backward adds
+    ``w_c features[n, l, f]`` (the features' gradient) into ``table`` (the table's gradient, zeroed by the caller)."""
+    idx, w = np.empty(8, np.int64), np.empty(8, x.dtype)
     for n in range(x.shape[0]):
-        px = min(max(x[n, 0], 0.0), 1.0)
-        py = min(max(x[n, 1], 0.0), 1.0)
-        pz = min(max(x[n, 2], 0.0), 1.0)
         for level in range(res.shape[0]):
-            _corners(px, py, pz, res[level], level < num_dense, size_mask, idx, w)
+            _corners(x, n, res[level], level < num_dense, size_mask, idx, w)
             base = offset[level]
-            for f in range(F):
-                acc = 0.0
-                for c in range(8):
-                    acc += w[c] * table[base + idx[c], f]
-                out[n, level, f] = acc
-
-
-@numba.njit(cache=True, nogil=True)
-def _backward(x: np.ndarray, grad_out: np.ndarray, res: np.ndarray, offset: np.ndarray, num_dense: int,
-              size_mask: int, grad_table: np.ndarray) -> None:
-    """``grad_table[offset_l + idx_c, f] += w_c grad_out[n, l, f]`` (``grad_table`` zeroed by the caller)."""
-    idx = np.empty(8, np.int64)
-    w = np.empty(8, x.dtype)
-    F = grad_table.shape[1]
-    for n in range(x.shape[0]):
-        px = min(max(x[n, 0], 0.0), 1.0)
-        py = min(max(x[n, 1], 0.0), 1.0)
-        pz = min(max(x[n, 2], 0.0), 1.0)
-        for level in range(res.shape[0]):
-            _corners(px, py, pz, res[level], level < num_dense, size_mask, idx, w)
-            base = offset[level]
-            for f in range(F):
-                g = grad_out[n, level, f]
-                for c in range(8):
-                    grad_table[base + idx[c], f] += w[c] * g
+            for f in range(table.shape[1]):
+                if backward:
+                    g = features[n, level, f]
+                    for c in range(8):
+                        table[base + idx[c], f] += w[c] * g
+                else:
+                    acc = 0.0
+                    for c in range(8):
+                        acc += w[c] * table[base + idx[c], f]
+                    features[n, level, f] = acc
 
 
 class FusedHashEncode(torch.autograd.Function):
@@ -97,7 +81,7 @@ class FusedHashEncode(torch.autograd.Function):
         x = x.detach().to(table.dtype).contiguous()
         t = table.detach().contiguous()
         out = torch.empty(len(x), len(res), t.shape[1], dtype=t.dtype)
-        _forward(x.numpy(), t.numpy(), res.numpy(), offset.numpy(), num_dense, table_size - 1, out.numpy())
+        _sweep(x.numpy(), t.numpy(), res.numpy(), offset.numpy(), num_dense, table_size - 1, out.numpy(), False)
         ctx.save_for_backward(x, res, offset)
         ctx.num_dense, ctx.table_size, ctx.table_shape = num_dense, table_size, t.shape
         return out
@@ -106,8 +90,8 @@ class FusedHashEncode(torch.autograd.Function):
     def backward(ctx, grad: Tensor):
         x, res, offset = ctx.saved_tensors
         grad_table = torch.zeros(ctx.table_shape, dtype=grad.dtype)
-        _backward(x.numpy(), grad.contiguous().numpy(), res.numpy(), offset.numpy(), ctx.num_dense,
-                  ctx.table_size - 1, grad_table.numpy())
+        _sweep(x.numpy(), grad_table.numpy(), res.numpy(), offset.numpy(), ctx.num_dense, ctx.table_size - 1,
+               grad.contiguous().numpy(), True)
         return grad_table, None, None, None, None, None
 
 
