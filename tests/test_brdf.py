@@ -16,7 +16,7 @@ from nefii.render.brdf import (F0_DIELECTRIC, OFFICIAL_BRDF, ROUGHNESS_MIN, BRDF
                                roughness_from_logit)
 from nefii.render.estimator import estimate_Lo
 from nefii.render.estimator_reference import estimate_Lo_reference
-from nefii.render.sg import SGMixture, sg_eval
+from nefii.render.sg import SGMixture, sg_eval, sg_lobes
 
 ALPHAS = (ROUGHNESS_MIN**2, 0.02, 0.1, 0.36, 1.0)
 MODELS = (BRDFModel(), OFFICIAL_BRDF, BRDFModel("lambert", "smith"), BRDFModel("burley", "schlick"))
@@ -336,3 +336,25 @@ def test_sg_eval_gradcheck() -> None:
     def f(axis, sharpness, amplitude):
         return sg_eval(w, SGMixture(axis, sharpness, amplitude))
     assert torch.autograd.gradcheck(f, (axis, sharpness, amplitude), eps=1e-6, atol=1e-8, rtol=1e-6)
+
+
+def test_sg_eval_with_given_lobes_keeps_every_gradient() -> None:
+    """Lobe values handed in detached (the light pdf's) change neither the value nor any gradient, on the
+    hand-written backward's path and on autograd's (``w`` differentiable: the given lobes are not used). (Not a
+    gradcheck: with the lobes fixed, finite differences in the axes cannot move the value.)"""
+    gen = torch.Generator().manual_seed(11)
+    axis = torch.nn.functional.normalize(torch.randn(4, 3, generator=gen, dtype=DTYPE), dim=-1).requires_grad_()
+    sharpness = tensor(0.5, 5.0, 30.0, 300.0).requires_grad_()
+    amplitude = torch.rand(4, 3, generator=gen, dtype=DTYPE).requires_grad_()
+    w = torch.nn.functional.normalize(torch.randn(6, 2, 3, generator=gen, dtype=DTYPE), dim=-1)
+    sg = lambda: SGMixture(axis, sharpness, amplitude)
+    lobes = sg_lobes(w, sg()).detach()
+
+    cot = torch.randn(6, 2, 3, generator=gen, dtype=DTYPE)
+    for wd in (w, w.clone().requires_grad_()):
+        ref_val, got_val = sg_eval(wd, sg()), sg_eval(wd, sg(), lobes)
+        torch.testing.assert_close(got_val, ref_val, rtol=1e-12, atol=1e-14)
+        ref = torch.autograd.grad((ref_val * cot).sum(), (axis, sharpness, amplitude))
+        got = torch.autograd.grad((got_val * cot).sum(), (axis, sharpness, amplitude))
+        for a, b in zip(ref, got):
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)

@@ -52,8 +52,10 @@ class SGEnvironment(nn.Module):
         return SGMixture(axis=normalize(self.axis_raw), sharpness=self.log_sharpness.exp(),
                          amplitude=self.log_amplitude.exp())
 
-    def radiance(self, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs 3"]:
-        return sg_eval(w, self())
+    def radiance(self, w: Float[Tensor, "*bs 3"], lobes: Float[Tensor, "*bs K"] | None = None
+                 ) -> Float[Tensor, "*bs 3"]:
+        """``E(w)``; ``lobes``: the unit lobe values at ``w`` when the caller has them (:func:`sg_eval`)."""
+        return sg_eval(w, self(), lobes)
 
     def energy_atoms(self) -> tuple[Float[Tensor, "K 3"], Float[Tensor, " K"]]:
         """Each lobe's axis and energy (Eq. 6's ``mu_bar``: what it sends over the whole sphere)."""

@@ -27,7 +27,7 @@ from torch import Tensor
 from ..raycast.base import Geometry
 from ..render.brdf import Material
 from ..render.estimator import DirectionSamples, combine_pair
-from ..render.sg import SGMixture
+from ..render.sg import SGMixture, sg_lobes
 from .distributed import DistContext, all_mean
 from .path_trace import SurfacePoints, Transport, trace_live_samples
 
@@ -44,12 +44,6 @@ class Quadratic:
 
     def scaled(self, s: float) -> "Quadratic":
         return Quadratic(self.A * s, self.r * s)
-
-
-def lobe_kernels(sg: SGMixture, w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs K"]:
-    """``G_k(w) = exp(lambda_k (w . axis_k - 1))``: each lobe's radiance at unit amplitude. (``sg_lobes`` computes
-    the same with another rounding and a floor; switching changes the fit's figures in the last digits.)"""
-    return torch.exp(sg.sharpness * (w @ sg.axis.T - 1.0))
 
 
 @dataclass(frozen=True)
@@ -77,7 +71,9 @@ def sample_throughput(samples: DirectionSamples, material: Material, normal: Ten
 def lobe_design(pts: SurfacePoints, material: Material, samples: DirectionSamples, sg: SGMixture,
                 geometry: Geometry, cache, transport: Transport) -> LobeDesign:
     """The design of :class:`LobeDesign` at ``pts`` for the drawn ``samples`` (secondary rays traced
-    against ``geometry``; ``cache(x', n', wo')`` the radiance where they hit)."""
+    against ``geometry``; ``cache(x', n', wo')`` the radiance where they hit). Samples drawn with an SG light
+    carry its lobe values (:attr:`DirectionSamples.light_lobes`), which are taken as ``sg``'s: draw them
+    from ``sg`` itself."""
     wi = samples.wi
     live = trace_live_samples(pts, samples, geometry, transport)
     b_idx, s_idx, w_live = live.point, live.sample, live.direction
@@ -88,7 +84,10 @@ def lobe_design(pts: SurfacePoints, material: Material, samples: DirectionSample
         L_hit[b_idx[hit.valid], s_idx[hit.valid]] = cache(hit.position[hit.valid], hit.normal[hit.valid],
                                                           -w_live[hit.valid])
     G = wi.new_zeros(*wi.shape[:2], sg.num_lobes)
-    G[b_idx[escapes], s_idx[escapes]] = lobe_kernels(sg, w_live[escapes])
+    if samples.light_lobes is not None:                   # drawn from ``sg``: its pdf's lobe values
+        G[b_idx[escapes], s_idx[escapes]] = samples.light_lobes[b_idx[escapes], s_idx[escapes]]
+    else:
+        G[b_idx[escapes], s_idx[escapes]] = sg_lobes(w_live[escapes], sg)
     t1, t2 = sample_throughput(samples, material, pts.normal)
     return LobeDesign((torch.einsum("psc,psk->pck", t1, G), torch.einsum("psc,psk->pck", t2, G)),
                       ((t1 * L_hit).sum(1), (t2 * L_hit).sum(1)))
@@ -111,7 +110,7 @@ def background_quadratic(sg: SGMixture, dirs: Float[Tensor, "Q 3"], target: Floa
                          weight: Float[Tensor, "Q 3"], gain: Float[Tensor, "Q 3"] | None = None) -> Quadratic:
     """``mean w^2 (g G mu - t)^2`` of background pixels as a :class:`Quadratic`."""
     g = torch.ones_like(target) if gain is None else gain
-    G = lobe_kernels(sg, dirs).double().unsqueeze(1) * g.double().unsqueeze(-1)      # (Q, 3, K)
+    G = sg_lobes(dirs, sg).double().unsqueeze(1) * g.double().unsqueeze(-1)      # (Q, 3, K)
     w2 = weight.double() ** 2
     return Quadratic(torch.einsum("qc,qck,qcj->ckj", w2, G, G) / len(dirs),
                      torch.einsum("qc,qck,qc->ck", w2, G, target.double()) / len(dirs))

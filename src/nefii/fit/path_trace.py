@@ -151,7 +151,11 @@ def path_trace(model: NeFIIModel, geometry: Geometry, pts: SurfacePoints, materi
     secondary = SurfacePoints.from_hit(hit, hit.valid, -w_live[hit.valid])
     # ---- incoming light: V E(w) + (1 - V) L(x', n', -w)
     miss = ~hit.valid
-    L_i = wi.new_zeros(wi.shape).index_put((b_idx[miss], s_idx[miss]), radiance(w_live[miss]))
+    if environment is None and samples.light_lobes is not None:     # the light pdf's lobe values, not again
+        L_miss = model.env.radiance(w_live[miss], samples.light_lobes[b_idx[miss], s_idx[miss]])
+    else:
+        L_miss = radiance(w_live[miss])
+    L_i = wi.new_zeros(wi.shape).index_put((b_idx[miss], s_idx[miss]), L_miss)
     if transport.indirect and len(secondary):
         L_hit = model.cache(secondary.position, secondary.normal, secondary.wo)
         L_i = L_i.index_put((b_idx[hit.valid], s_idx[hit.valid]), L_hit)

@@ -28,7 +28,7 @@ from torch import Tensor
 from .brdf import F0_DIELECTRIC, Material, alpha_from_roughness, brdf_eval
 from .frame import Frame, dot, normalize
 from .mis import power_heuristic_over_pdf
-from .lights import LightSampler, as_light_sampler
+from .lights import LightSampler, SGLightSampler, as_light_sampler
 from .samplers import pdf_cosine, pdf_ggx_vndf, sample_cosine, sample_ggx_vndf
 from .sg import SGMixture
 
@@ -50,6 +50,9 @@ class DirectionSamples:
     """the view direction actually shaded (moved just above the surface if it was not)"""
     num_estimator_samples: int
     """N: the sum over the S directions is divided by N"""
+    light_lobes: Float[Tensor, "*bs S K"] | None = None
+    """with an SG light strategy, its unit lobe values ``sg_lobes(wi, sg)`` (computed for the light pdf; the
+    radiance of a direction that escapes is these times the amplitudes); None for other light samplers"""
 
 
 @dataclass(frozen=True)
@@ -105,15 +108,18 @@ def sample_mis_directions(n: Float[Tensor, "*bs 3"], wo: Float[Tensor, "*bs 3"],
 
     # ---- every strategy's density at every direction
     wi_local = frame_s.to_local(wi)
-    p_all = torch.stack([pdf_cosine(wi_local), pdf_ggx_vndf(wo_local, wi_local, alpha),
-                         light.pdf(n, wi)], -1)                   # (*bs, 3N, 3)
+    if isinstance(light, SGLightSampler):
+        p_light, lobes = light.pdf_and_lobes(n, wi)
+    else:
+        p_light, lobes = light.pdf(n, wi), None
+    p_all = torch.stack([pdf_cosine(wi_local), pdf_ggx_vndf(wo_local, wi_local, alpha), p_light], -1)  # (*bs, 3N, 3)
     own = torch.arange(3, device=n.device).repeat_interleave(N)   # strategy of each direction
     p_own = p_all.gather(-1, own.expand(*bs, 3 * N).unsqueeze(-1)).squeeze(-1)
 
     # ---- power heuristic; directions under the surface carry nothing
     weight = power_heuristic_over_pdf(p_own, p_all)
     weight = torch.where(wi_local[..., 2] > 0, weight, torch.zeros_like(weight))
-    return DirectionSamples(wi=wi, weight=weight, wo=wo, num_estimator_samples=N)
+    return DirectionSamples(wi=wi, weight=weight, wo=wo, num_estimator_samples=N, light_lobes=lobes)
 
 
 def _terms(samples: DirectionSamples, material: Material, n: Float[Tensor, "*bs 3"], L_i: Float[Tensor, "*bs S 3"],

@@ -13,7 +13,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from .samplers import SG_HEMISPHERE_EPS, pdf_sg_mixture, sample_sg_mixture, sg_selection_probs
-from .sg import SGMixture
+from .sg import SGMixture, sg_lobes
 
 
 class LightSampler(Protocol):
@@ -34,6 +34,13 @@ class SGLightSampler:
 
     def pdf(self, n: Tensor, wi: Tensor) -> Tensor:
         return pdf_sg_mixture(self.sg, sg_selection_probs(self.sg, n, self.eps).unsqueeze(-2), wi)
+
+    def pdf_and_lobes(self, n: Float[Tensor, "*bs 3"], wi: Float[Tensor, "*bs S 3"]
+                      ) -> tuple[Float[Tensor, "*bs S"], Float[Tensor, "*bs S K"]]:
+        """:meth:`pdf` and the unit lobe values ``sg_lobes(wi, sg)`` it is made of (the radiance of the
+        directions that escape is those values times the amplitudes: the caller need not compute them again)."""
+        lobes = sg_lobes(wi, self.sg)
+        return pdf_sg_mixture(self.sg, sg_selection_probs(self.sg, n, self.eps).unsqueeze(-2), wi, lobes), lobes
 
 
 def as_light_sampler(light: SGMixture | LightSampler) -> LightSampler:

@@ -137,15 +137,16 @@ def sample_sg_mixture(sg: SGMixture, probs: Float[Tensor, "*bs K"],
     return sample_sg_lobe(sg.axis[k], sg.sharpness[k], u[..., 1:])
 
 
-def pdf_sg_mixture(sg: SGMixture, probs: Float[Tensor, "*bs K"],
-                   w: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs"]:
+def pdf_sg_mixture(sg: SGMixture, probs: Float[Tensor, "*bs K"], w: Float[Tensor, "*bs 3"],
+                   lobes: Float[Tensor, "*bs K"] | None = None) -> Float[Tensor, "*bs"]:
     """Eq. 5: ``sum_k a_k lambda_k / (2 pi (1 - e^{-2 lambda_k})) e^{lambda_k (w.xi_k - 1)}``.
 
     With one set of ``probs`` per point shared by its directions (``(*bs, 1, K)``, the estimator's case) the
     sum over lobes is a batched matrix-vector product: 3-4x faster on the CPU than a product and a sum over
-    the ``(*bs, S, K)`` lobe values (512 points x 48 directions x 128 lobes, one thread)."""
+    the ``(*bs, S, K)`` lobe values (512 points x 48 directions x 128 lobes, one thread). ``lobes``:
+    ``sg_lobes(w, sg)`` when the caller has them (:meth:`SGLightSampler.pdf_and_lobes` keeps them)."""
     weights = probs / sg_integral(sg.sharpness)
-    lobes = sg_lobes(w, sg)                                       # (*bs, S, K)
+    lobes = sg_lobes(w, sg) if lobes is None else lobes           # (*bs, S, K)
     if weights.dim() >= 2 and weights.shape[-2] == 1 and lobes.dim() >= 2:
         return (lobes @ weights.transpose(-1, -2)).squeeze(-1)
     return (lobes * weights).sum(-1)
