@@ -211,13 +211,14 @@ def network_numbers(net: NetworkConfig) -> tuple[int, int]:
 
 def fit_memory_bytes(cfg: FitConfig) -> float:
     """A rough upper estimate of a fit step's memory: the parameters four times over (weights, gradients,
-    Adam's two moments), the activations kept for the backward pass at every estimator direction, the
-    secondary-hit buffer. It only has to catch sizes no machine holds, before any data is read."""
+    Adam's two moments), the activations kept for the backward pass at every estimator direction, the SG
+    light's lobe values there (kept from the light pdf for the escaped rays' radiance), the secondary-hit
+    buffer. It only has to catch sizes no machine holds, before any data is read."""
     m_params, m_act = network_numbers(cfg.material)
     c_params, c_act = network_numbers(cfg.cache)
     points = max(cfg.batch_pixels, cfg.unobserved_points)
     directions = points * cfg.num_samples * 3
-    activations = 2 * (points * 2 * m_act + directions * c_act)
+    activations = 2 * (points * 2 * m_act + directions * c_act) + directions * cfg.light.num_lobes
     env = 6 * cfg.light.envmap_height**2 + 7 * cfg.light.num_lobes
     return 4.0 * (4 * (m_params + c_params + env) + activations + 32 * cfg.secondary_buffer)
 
