@@ -145,3 +145,26 @@ def test_a_linear_term_lives_on_its_coefficients_device():
     total = q + Quadratic(torch.zeros(3, 5, 5, dtype=torch.float64, device="meta"),
                           torch.zeros(3, 5, dtype=torch.float64, device="meta"))
     assert total.A.device.type == "meta"
+
+
+def test_the_light_pdfs_lobe_values_light_the_escaped_rays_as_the_environment_does(tiny_scene):
+    """``path_trace`` reads the escaped rays' radiance from the lobe values the light pdf kept
+    (``DirectionSamples.light_lobes``): the estimate and its gradient to the light equal those of the same draws
+    lit by ``model.env.radiance`` computed afresh."""
+    trainer = _trainer(tiny_scene)
+    model, px = trainer.model, trainer.pixels
+    pts = px.points[torch.arange(0, len(px.points), 2)]
+    material = decode_material(model, pts.position, pts.lookup_normal, 0.5)
+    out = []
+    for environment in (None, lambda w: model.env.radiance(w)):
+        traced = path_trace(model, trainer.geometry, pts, material, 8, torch.Generator().manual_seed(3),
+                            trainer.transport, environment=environment)
+        grads = torch.autograd.grad(traced.radiance.rgb.square().sum(),
+                                    (model.env.log_amplitude, model.env.log_sharpness, model.env.axis_raw),
+                                    retain_graph=True)
+        out.append((traced.radiance.rgb.detach(), grads))
+    assert float(out[0][0].abs().max()) > 0
+    torch.testing.assert_close(out[0][0], out[1][0], rtol=1e-5, atol=1e-7)
+    for a, b in zip(out[0][1], out[1][1]):
+        assert float(a.abs().max()) > 0
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-9)
