@@ -84,16 +84,13 @@ def lobe_design(pts: SurfacePoints, material: Material, samples: DirectionSample
         L_hit[b_idx[hit.valid], s_idx[hit.valid]] = cache(hit.position[hit.valid], hit.normal[hit.valid],
                                                           -w_live[hit.valid])
     t1, t2 = sample_throughput(samples, material, pts.normal)
-    c = ((t1 * L_hit).sum(1), (t2 * L_hit).sum(1))
-    if samples.light_lobes is not None:    # drawn from ``sg``: its pdf's lobe values, the hits' throughput zeroed
-        escaped = torch.zeros(wi.shape[:2], dtype=torch.bool, device=wi.device)
-        escaped[b_idx[escapes], s_idx[escapes]] = True
-        e = escaped.unsqueeze(-1).to(t1.dtype)
-        G = samples.light_lobes
-        return LobeDesign((torch.einsum("psc,psk->pck", t1 * e, G), torch.einsum("psc,psk->pck", t2 * e, G)), c)
-    G = wi.new_zeros(*wi.shape[:2], sg.num_lobes)
-    G[b_idx[escapes], s_idx[escapes]] = sg_lobes(w_live[escapes], sg)
-    return LobeDesign((torch.einsum("psc,psk->pck", t1, G), torch.einsum("psc,psk->pck", t2, G)), c)
+    # every direction's lobe values (drawn from ``sg``: its pdf's), the throughput of those that hit zeroed
+    G = sg_lobes(wi, sg) if samples.light_lobes is None else samples.light_lobes
+    escaped = torch.zeros(wi.shape[:2], dtype=torch.bool, device=wi.device)
+    escaped[b_idx[escapes], s_idx[escapes]] = True
+    e = escaped.unsqueeze(-1).to(t1.dtype)
+    return LobeDesign((torch.einsum("psc,psk->pck", t1 * e, G), torch.einsum("psc,psk->pck", t2 * e, G)),
+                      ((t1 * L_hit).sum(1), (t2 * L_hit).sum(1)))
 
 
 def pixel_quadratic(design: LobeDesign, target: Float[Tensor, "P 3"], weight: Float[Tensor, "P 3"],

@@ -33,7 +33,7 @@ class SGLightSampler:
         return sample_sg_mixture(self.sg, sg_selection_probs(self.sg, n, self.eps).unsqueeze(-2), u)
 
     def pdf(self, n: Tensor, wi: Tensor) -> Tensor:
-        return pdf_sg_mixture(self.sg, sg_selection_probs(self.sg, n, self.eps).unsqueeze(-2), wi)
+        return self.pdf_and_lobes(n, wi)[0]
 
     def pdf_and_lobes(self, n: Float[Tensor, "*bs 3"], wi: Float[Tensor, "*bs S 3"]
                       ) -> tuple[Float[Tensor, "*bs S"], Float[Tensor, "*bs S K"]]:
