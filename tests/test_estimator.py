@@ -312,3 +312,27 @@ def test_the_pair_loss_has_no_variance_term_where_the_square_of_one_estimate_doe
     assert abs(float(m_pair)) < Z_MAX * float(se_pair), (m_pair, se_pair)
     assert float(m_sq) > Z_MAX * float(se_sq), (m_sq, se_sq)
     torch.testing.assert_close(m_sq.squeeze(), 2 * variance, rtol=0.1, atol=0.0)
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_pick_lobe_is_the_count_of_cdf_entries_at_or_below_u(shared: bool) -> None:
+    """``pick_lobe``'s binary search gives exactly the index that counting the CDF entries at or below ``u``
+    times the total gives (the definition), zero-probability lobes and draws on a CDF step included, for
+    probabilities shared by a point's draws ``(P, 1, K)`` and one set per draw ``(P, N, K)``."""
+    from nefii.render.samplers import pick_lobe
+
+    g = torch.Generator().manual_seed(3)
+    P, N, K = 64, 40, 128
+    probs = torch.rand(P, 1 if shared else N, K, generator=g, dtype=DTYPE)
+    probs[probs < 0.3] = 0.0                                      # lobes that must never be picked
+    probs = probs / probs.sum(-1, keepdim=True)
+    u = torch.rand(P, N, generator=g, dtype=DTYPE)
+    cdf = probs.cumsum(-1)
+    u[:, :8] = (cdf[:, :1, 40:48] / cdf[:, :1, -1:]).expand(P, 1, 8).reshape(P, 8)   # exactly on steps
+    u[:, 8] = 0.0
+    u[:, 9] = 1.0 - 1e-16
+    expected = (cdf <= (u * cdf[..., -1]).unsqueeze(-1)).sum(-1).clamp_max(K - 1)
+    k = pick_lobe(probs, u)
+    assert k.shape == (P, N)
+    assert torch.equal(k, expected)
+    assert bool((probs.expand(P, N, K).gather(-1, k.unsqueeze(-1)) > 0).all())
