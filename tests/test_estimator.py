@@ -19,6 +19,7 @@ from nefii.render.estimator import MIN_COS_VIEW, combine, estimate_Lo, sample_mi
 from nefii.render.frame import Frame, reflect
 from nefii.render.estimator_reference import estimate_Lo_reference
 from nefii.render.mis import power_heuristic, power_heuristic_over_pdf
+from nefii.render.samplers import pick_lobe
 from nefii.render.sg import SGMixture, sg_eval, sg_lobes
 
 NUM_POINTS = 20_000
@@ -319,8 +320,6 @@ def test_pick_lobe_is_the_count_of_cdf_entries_at_or_below_u(shared: bool) -> No
     """``pick_lobe``'s binary search gives exactly the index that counting the CDF entries at or below ``u``
     times the total gives (the definition), zero-probability lobes and draws on a CDF step included, for
     probabilities shared by a point's draws ``(P, 1, K)`` and one set per draw ``(P, N, K)``."""
-    from nefii.render.samplers import pick_lobe
-
     g = torch.Generator().manual_seed(3)
     P, N, K = 64, 40, 128
     probs = torch.rand(P, 1 if shared else N, K, generator=g, dtype=DTYPE)

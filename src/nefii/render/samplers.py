@@ -130,10 +130,10 @@ def pick_lobe(probs: Float[Tensor, "*bs K"], u: Float[Tensor, "*bs"]) -> Int[Ten
     lobes on one thread). ``probs`` may be shared by a point's draws (``(*bs, 1, K)`` against ``u (*bs, N)``)."""
     cdf = probs.cumsum(-1)
     x = u * cdf[..., -1]
-    shape = torch.broadcast_shapes(cdf.shape[:-1], x.shape)
-    if cdf.dim() >= 2 and cdf.shape[-2] == 1 and len(shape) == cdf.dim() - 1 and cdf.shape[:-2] == shape[:-1]:
-        k = torch.searchsorted(cdf.squeeze(-2).contiguous(), x.expand(shape).contiguous(), right=True)
+    if cdf.dim() >= 2 and cdf.shape[-2] == 1 and x.shape[:-1] == cdf.shape[:-2]:   # one CDF for a point's draws
+        k = torch.searchsorted(cdf.squeeze(-2).contiguous(), x.contiguous(), right=True)
     else:
+        shape = torch.broadcast_shapes(cdf.shape[:-1], x.shape)
         k = torch.searchsorted(cdf.expand(*shape, cdf.shape[-1]).contiguous(),
                                x.expand(shape).unsqueeze(-1).contiguous(), right=True).squeeze(-1)
     return k.clamp_max(probs.shape[-1] - 1)
