@@ -31,10 +31,12 @@ wide lobes cost it 1.5 dB of albedo (docs/experiments.md, 2026-11-29).
 Photos without masks see the sky behind the object, and a sun in frame clips. Where the background's clipped
 pixels gather in one compact patch of directions that clips in every view that sees it, dark exposures included
 (:func:`sky_sun`), that patch's centre places the sun's lobe instead of the search (leaning's phone capture: 5
-degrees from the sun where the shading's search is 10 off). While that lobe is wide, the background pixels in its
-glow (:func:`beyond_glow`) are left out of Eq. 7's third term and of the light solve: a 6-degree lobe standing for
-a 1-degree sun over-predicts the unclipped sky around it tens of times, and those pixels pushed the lobe off the
-sun (leaning's capture: 10 to 17 degrees) or the solve emptied it.
+degrees from the sun where the shading's search is 10 off). The background pixels in that lobe's glow
+(:func:`beyond_glow`, at the lobe's sharpness of the moment) are left out of Eq. 7's third term and of the light
+solve, through the warm-up and after the lobe is sharpened: a 6-degree lobe standing for a 1-degree sun
+over-predicts the unclipped sky around it tens of times, and those pixels pushed the lobe off the sun (leaning's
+capture: 10 to 17 degrees) or the solve emptied it; sharpened 2-5 degrees off the sun, the lobe's peak lies on
+unclipped sky, and the solve that followed cut its energy sevenfold (docs/experiments.md, 2026-12-02).
 """
 from __future__ import annotations
 

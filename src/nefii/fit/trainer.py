@@ -123,9 +123,9 @@ class Trainer:
     @torch.no_grad()
     def _sky_usable(self, dirs: Float[Tensor, "Q 3"]) -> Bool[Tensor, " Q"]:
         """Which background directions Eq. 7's third term and the light solve read: all, except in the glow of the
-        sun's lobe while it is wide (until the warm-up ends; :mod:`nefii.fit.light_init`)."""
+        sun's lobe at its current sharpness (wide through the warm-up, sharp after it; :mod:`nefii.fit.light_init`)."""
         env = self.model.env
-        if self.sun_lobe is None or self.step >= self.warmup.steps or not isinstance(env, SGEnvironment):
+        if self.sun_lobe is None or not isinstance(env, SGEnvironment):
             return torch.ones(len(dirs), dtype=torch.bool, device=dirs.device)
         sg = env()
         return beyond_glow(dirs, sg.axis[self.sun_lobe], float(sg.sharpness[self.sun_lobe]))
@@ -181,7 +181,7 @@ class Trainer:
         if len(px.bg_dirs) and cfg.beta2 > 0 and cfg.background_pixels > 0:
             j = torch.randint(len(px.bg_dirs), (cfg.light_solve_pixels,), generator=g, device=self.device)
             j = j[self._sky_usable(px.bg_dirs[j])]
-        if j is not None and len(j):            # none left: every pixel drawn lies in a wide sun lobe's glow
+        if j is not None and len(j):            # none left: every pixel drawn lies in the sun lobe's glow
             gain = None if self.gains is None else self.gains(px.bg_view[j])
             q = q + background_quadratic(sg, px.bg_dirs[j], px.bg_rgb[j], tonemap_slope(px.bg_rgb[j], cfg.tonemap),
                                          gain).scaled(cfg.beta2)
