@@ -23,6 +23,7 @@ from nefii.raycast import MeshGeometry, Rays
 from nefii.render.frame import normalize
 from nefii.synth import smallest_scene
 
+from . import step_budget
 from .common import machine, scene, stamp, write_results
 
 
@@ -77,6 +78,7 @@ def main() -> None:
     closest, anyhit = embree_rate(geometry)
     steps_s = args.steps / dt
     rays_s = rays / dt
+    budget = step_budget.measure(trainer, geometry, max(args.steps // 2, 20)) if device.type == "cpu" else None
     rows = [
         ("scene", f"{data.name}: {len(sc)} views {sc.width}x{sc.height}, {len(pixels.points)} object pixels, "
                   f"{len(geometry.faces)} triangles"),
@@ -93,6 +95,8 @@ def main() -> None:
         ("steps in 15 min at this rate", f"{steps_s * 900:.0f} (preset runs {cfg.steps})"),
         ("peak resident memory", f"{peak_gib:.2f} GiB"),
     ]
+    if budget is not None:
+        rows += step_budget.rows(budget, rays / args.steps, closest)
     if device.type == "cuda":
         rows.append(("peak GPU memory allocated", f"{torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB"))
     md = [f"# fit_speed ({stamp()})", "", f"Machine: {machine()}", "", "| figure | value |", "|---|---|"]
