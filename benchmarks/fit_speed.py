@@ -5,7 +5,8 @@
 The fit is set up as ``nefii fit`` sets it up (``nefii.fit.session.prepare_fit``: first hits, model,
 light initialisation). Prints the figures and writes ``benchmarks/results/fit_speed.md`` (``fit_speed_cuda.md`` when the
 step runs on a GPU; Embree's ray casts stay on the CPU either way). Without ``--data`` it uses
-the smallest built-in scene at 128x128 with 64 training views (synthesised once, cached).
+the smallest built-in scene at 128x128 with 64 training views (synthesised once, cached). On the CPU the
+table ends with :mod:`benchmarks.step_budget`'s rows: the step's time inside Embree and its networks' passes.
 """
 from __future__ import annotations
 

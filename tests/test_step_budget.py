@@ -21,5 +21,5 @@ def test_a_step_budget_counts_the_estimator_rays_and_restores_the_geometry(tiny_
     assert b.cache_rows >= cfg.batch_pixels and b.material_rows >= cfg.batch_pixels   # Eq. 7's first hits at least
     assert 0 < b.embree_ms < b.step_ms and b.cache_pass_ms > 0 and b.material_pass_ms > 0
     assert not {"intersect", "occluded"} & set(vars(session.geometry))      # the timing wrappers are gone
-    table = dict(rows(b, samples_per_step=3 * cfg.num_samples * cfg.batch_pixels, closest_rate=1e6))
-    assert table["step time at 15% of Embree's closest-hit rate"] == f"{1000 * 384 / 0.15e6:.1f} ms"
+    table = dict(rows(b, samples_per_step=directions, closest_rate=1e6))
+    assert table["step time at 15% of Embree's closest-hit rate"] == f"{1000 * directions / 0.15e6:.1f} ms"
