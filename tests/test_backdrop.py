@@ -51,6 +51,8 @@ def test_the_fit_leaves_a_white_backdrop_out_and_keeps_a_varying_background(scen
     session = prepare_fit(resolve_config("tiny", []), white, say=lines.append)
     assert len(session.pixels.bg_dirs) == 0 and len(session.pixels.points) > 0
     assert any("backdrop" in line for line in lines)
+    # the edge pixels mix the object with the backdrop, which the fit does not render: dropped
+    assert not bool(session.pixels.edge.any()) and not any("on the silhouette" in line for line in lines)
 
     def ramp(h, w):
         return np.broadcast_to(np.linspace(0.1, 2.0, w, dtype=np.float32)[None, :, None], (h, w, 3)).copy()
@@ -58,3 +60,8 @@ def test_the_fit_leaves_a_white_backdrop_out_and_keeps_a_varying_background(scen
     lines.clear()
     varying = prepare_fit(resolve_config("tiny", []), composited(scene, tmp_path / "ramp", ramp), say=lines.append)
     assert len(varying.pixels.bg_dirs) > 0 and not any("backdrop" in line for line in lines)
+    edges = int(varying.pixels.edge.sum())
+    assert edges > 0 and any(f"({edges} on the silhouette" in line for line in lines)
+    # the light solve reads the pixels fitted as object alone
+    assert torch.equal(varying.trainer.solid_pixels, (~varying.pixels.edge).nonzero()[:, 0])
+    assert len(varying.trainer.solid_pixels) == len(varying.pixels.points) - edges

@@ -1,5 +1,8 @@
-"""The fit's pixels as footprints: hits at a 2 x 2 grid inside each pixel, and the two-point pair estimate."""
+"""The fit's pixels as footprints: hits at a 2 x 2 grid inside each pixel, the sky past the silhouette, and the
+two-point pair estimate."""
 from __future__ import annotations
+
+import dataclasses
 
 import pytest
 import torch
@@ -8,9 +11,10 @@ import nefii.fit.pixels as pixels
 from fit_fixtures import scene_mesh, write_rendered_scene
 from nefii.data import load_scene
 from nefii.errors import InputError
-from nefii.fit.path_trace import PathTraced, SurfacePoints, two_point_pair
+from nefii.fit.losses import observed_loss
+from nefii.fit.path_trace import PathTraced, SurfacePoints, environment_where, two_point_pair
 from nefii.fit.pixels import FOOTPRINT_GRID, first_hits
-from nefii.raycast import MeshGeometry
+from nefii.raycast import MeshGeometry, Rays
 from nefii.render.estimator import RadianceEstimate
 
 
@@ -53,9 +57,71 @@ def test_select_and_at_footprint_index_the_same_pixels(tmp_path):
     idx = torch.tensor([P - 1, 0, P // 2, 0])
     batch = px.select(idx, torch.zeros(0, dtype=torch.long))
     k = torch.tensor([3, 0, 2, 1])
-    want = px.footprint[k * P + idx]
-    torch.testing.assert_close(batch.at_footprint(k).position, want.position, rtol=0, atol=0)
-    torch.testing.assert_close(batch.at_footprint(k).normal, want.normal, rtol=0, atol=0)
+    want, want_sky = px.footprint[k * P + idx], px.footprint_sky[k * P + idx]
+    got, sky = batch.at_footprint(k)
+    torch.testing.assert_close(got.position, want.position, rtol=0, atol=0)
+    torch.testing.assert_close(got.normal, want.normal, rtol=0, atol=0)
+    assert torch.equal(sky, want_sky) and torch.equal(batch.edge, px.edge[idx])
+
+
+def test_a_transparent_render_has_no_edge_pixels_and_a_photo_sees_the_sky_past_its_silhouette(tmp_path):
+    rgba = load_scene(write_rendered_scene(tmp_path / "s", res=16, n_train=2, n_test=1))
+    photo = dataclasses.replace(rgba, masks=None, background_visible=True)
+    mesh = scene_mesh()
+    geometry = MeshGeometry(mesh.vertices, mesh.faces)
+    transparent, px = first_hits(rgba, geometry), first_hits(photo, geometry)
+    assert not bool(transparent.edge.any()) and not bool(transparent.footprint_sky.any())
+    P, F = len(px.points), len(FOOTPRINT_GRID)
+    sky = px.footprint_sky.reshape(F, P)
+    assert bool(px.edge.any()) and bool(sky.any())
+    assert not bool(sky[:, ~px.edge].any())            # only edge pixels see past the object
+    rows = px.footprint_sky.nonzero()[:, 0]
+    at = px.footprint[rows]
+    torch.testing.assert_close(at.position, px.points.position[rows % P], rtol=0, atol=0)  # the centre stands in
+    for v in range(len(photo)):                        # each sky row's ray, from its camera along -wo, misses
+        mine = rows[px.view[rows % P] == v]
+        d = -px.footprint.wo[mine]
+        o = photo.cameras.c2w[v][:3, 3].float().expand(len(d), 3)
+        assert not bool(geometry.intersect(Rays(o.contiguous(), d.contiguous())).valid.any())
+        torch.testing.assert_close(d.norm(dim=-1), torch.ones(len(d)), atol=1e-5, rtol=0)
+
+
+def test_environment_where_replaces_the_sky_rows_and_their_gradient_only():
+    g = torch.Generator().manual_seed(0)
+    diffuse = torch.rand(6, 3, generator=g, requires_grad=True)
+    specular = torch.rand(6, 3, generator=g, requires_grad=True)
+    sky_light = torch.rand(6, 3, generator=g, requires_grad=True)
+    sky = torch.tensor([False, True, False, False, True, False])
+    pts = SurfacePoints(*(torch.rand(4, 3, generator=g) for _ in range(5)))
+    est = RadianceEstimate(diffuse, specular)
+    out = environment_where(PathTraced(est, (est, est), pts), sky, sky_light)
+    for e in (out.radiance, *out.pair):
+        torch.testing.assert_close(e.rgb[sky], sky_light[sky].detach())
+        torch.testing.assert_close(e.rgb[~sky], (diffuse + specular)[~sky].detach())
+    out.radiance.rgb.sum().backward()
+    assert bool((diffuse.grad[sky] == 0).all()) and bool((diffuse.grad[~sky] == 1).all())
+    assert bool((sky_light.grad[~sky] == 0).all()) and bool((sky_light.grad[sky] == 1).all())
+    assert out.secondary is pts
+
+
+def test_the_cache_term_reads_only_its_rows():
+    g = torch.Generator().manual_seed(1)
+    B = 8
+    traced = PathTraced(RadianceEstimate(torch.rand(B, 3, generator=g), torch.zeros(B, 3)), None,
+                        SurfacePoints(*(torch.rand(1, 3, generator=g) for _ in range(5))))
+    cache, target = torch.rand(B, 3, generator=g), torch.rand(B, 3, generator=g)
+    rows = torch.tensor([True, False, True, True, False, True, True, False])
+    none = torch.zeros(0, 3)
+    mine = observed_loss(traced, cache, target, none, none, "log1p", "l2", cache_rows=rows)
+    alone = observed_loss(PathTraced(RadianceEstimate(traced.radiance.diffuse[rows], torch.zeros(int(rows.sum()), 3)), None,
+                                     traced.secondary), cache[rows], target[rows], none, none, "log1p", "l2")
+    torch.testing.assert_close(mine.cache, alone.cache)
+    moved = cache.clone()
+    moved[~rows] += 5.0
+    torch.testing.assert_close(observed_loss(traced, moved, target, none, none, "log1p", "l2",
+                                             cache_rows=rows).cache, mine.cache)
+    everything = observed_loss(traced, cache, target, none, none, "log1p", "l2")
+    assert float((everything.cache - mine.cache).abs()) > 1e-4
 
 
 def test_two_point_pair_splits_halves_and_averages():

@@ -1,5 +1,5 @@
-"""Pixels the silhouette crosses: where the background shows, their colour mixes object and background,
-so the fit leaves them out of both."""
+"""Pixels the silhouette crosses: where the background shows, their colour mixes object and background, so
+the fit renders them as that mixture: the footprint positions past the silhouette see the environment."""
 from __future__ import annotations
 
 import dataclasses
@@ -9,7 +9,7 @@ import torch
 from fit_fixtures import scene_mesh, write_rendered_scene
 from nefii.camera import jittered_pixel_rays
 from nefii.data import load_scene
-from nefii.fit.pixels import first_hits
+from nefii.fit.pixels import FOOTPRINT_GRID, first_hits
 from nefii.raycast import MeshGeometry, Rays
 
 
@@ -25,22 +25,24 @@ def _coverage(scene, geometry, v: int, n: int = 8) -> torch.Tensor:
     return hits / n**2
 
 
-def test_pixels_the_silhouette_crosses_are_left_out_where_the_background_shows(tmp_path):
+def test_pixels_the_silhouette_crosses_are_fitted_as_object_and_sky_where_the_background_shows(tmp_path):
     rgba = load_scene(write_rendered_scene(tmp_path / "s", res=24, n_train=2, n_test=1))
     photo = dataclasses.replace(rgba, masks=None, background_visible=True)  # as a photo: no masks, a background
     mesh = scene_mesh()
     geometry = MeshGeometry(mesh.vertices, mesh.faces)
     cover = torch.cat([_coverage(photo, geometry, v) for v in range(len(photo))])
-    kept, transparent = first_hits(photo, geometry), first_hits(rgba, geometry)
-    obj_cover = cover[_pixel_index(photo, geometry, kept)]
-    assert obj_cover.min() >= 0.85  # no object pixel is much background
-    # the RGBA render's object pixels (centre ray on the object) include pixels half background
-    assert cover[_pixel_index(rgba, geometry, transparent)].min() < 0.6
-    assert len(kept.points) < len(transparent.points)
-    bg_dirs = kept.bg_dirs
+    px = first_hits(photo, geometry)
+    obj_cover = cover[_pixel_index(photo, geometry, px)]
+    assert obj_cover[~px.edge].min() >= 0.85           # a pixel fitted as object alone is hardly background
+    assert int(px.edge.sum()) > 20 and obj_cover[px.edge].min() < 0.6
+    # an edge pixel's footprint sees the sky in about the share of the pixel the object leaves uncovered
+    P = len(px.points)
+    sky_share = px.footprint_sky.reshape(len(FOOTPRINT_GRID), P).float().mean(0)
+    err = sky_share[px.edge] - (1 - obj_cover[px.edge])
+    assert float(err.abs().mean()) <= 0.15 and abs(float(err.mean())) <= 0.08
     # every background pixel's direction is a view ray that misses near all its corners: none is covered
     flat_d = torch.cat([_dirs(photo, v) for v in range(len(photo))])
-    idx = _match(flat_d, bg_dirs)
+    idx = _match(flat_d, px.bg_dirs)
     assert cover[idx].max() <= 0.15
 
 

@@ -6,8 +6,9 @@ object, and Eq. 7's third term and the light's start believe it: on 2026-11-30 t
 fitted to 18.6 dB albedo and roughness MSE 0.058, over black to 25.0 dB, against 29.6 dB and 0.016 from the same
 renders with their alpha (docs/experiments.md). A real sky, room or capture is never one colour to within a few
 percent over 95% of the pixels, so such a background is taken for a backdrop: its pixels are dropped (the fit
-then learns the light from the object alone, as for a transparent render), and the rule that leaves out pixels
-the silhouette crosses still applies, since their colour mixes the object with the backdrop.
+then learns the light from the object alone, as for a transparent render), and so are the object pixels the
+silhouette crosses, since their colour mixes the object with the backdrop, not with the environment the fit
+renders past the silhouette.
 """
 from __future__ import annotations
 
@@ -39,10 +40,11 @@ def backdrop_colour(rgb: Float[Tensor, "Q 3"]) -> Float[Tensor, "3"] | None:
 
 
 def without_backdrop(pixels: Pixels) -> tuple[Pixels, Float[Tensor, "3"] | None]:
-    """``pixels`` with their background pixels dropped where they are a constant backdrop, and its colour (None,
-    and ``pixels`` as they are, otherwise)."""
+    """``pixels`` with their background pixels and their edge pixels dropped where the background is a constant
+    backdrop, and its colour (None, and ``pixels`` as they are, otherwise)."""
     colour = backdrop_colour(pixels.bg_rgb)
     if colour is None:
         return pixels, None
+    pixels = pixels.without_edges()
     return dataclasses.replace(pixels, bg_dirs=pixels.bg_dirs[:0], bg_rgb=pixels.bg_rgb[:0],
                                bg_view=pixels.bg_view[:0]), colour

@@ -7,7 +7,7 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 
 from .path_trace import PathTraced, SurfacePoints
 
@@ -125,15 +125,21 @@ def smoothness(albedo: Float[Tensor, "B 3"], neighbour_albedo: Float[Tensor, "B 
 def observed_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], target: Float[Tensor, "B 3"],
                   env_bg: Float[Tensor, "G 3"], target_bg: Float[Tensor, "G 3"], tone: str, kind: str,
                   beta1: float = 1.0, beta2: float = 1.0, smooth: Tensor | None = None,
-                  light: Tensor | None = None, gains: Gains | None = None) -> LossTerms:
+                  light: Tensor | None = None, gains: Gains | None = None,
+                  cache_rows: Bool[Tensor, "B"] | None = None) -> LossTerms:
     """Eq. 7: ``d(g c_pt, c) + beta1 d(g L(x,n,wo), c) + beta2 |g E(d_bg) - c_bg|_2^2`` (+ the priors' values),
     ``g`` each pixel's view gain (1 without ``gains``).
 
     ``cache_rgb`` is the cache's own colour at the pixels' points, ``env_bg`` the environment along the
-    background pixels' directions (``G`` may be 0)."""
+    background pixels' directions (``G`` may be 0). ``cache_rows``: the pixels the cache's term reads (None: all);
+    a pixel whose colour mixes object and sky is no radiance of one surface point."""
     g, g_bg = (1.0, 1.0) if gains is None else (gains.pixels, gains.background)
     l_render = render_distance(traced, target, tone, kind, None if gains is None else gains.pixels)
-    l_cache = distance(tonemap(g * cache_rgb, tone), tonemap(target, tone), kind)
+    if cache_rows is not None:
+        cache_rgb, target = cache_rgb[cache_rows], target[cache_rows]
+        g = g if gains is None else g[cache_rows]
+    l_cache = (distance(tonemap(g * cache_rgb, tone), tonemap(target, tone), kind) if len(cache_rgb)
+               else l_render.new_zeros(()))
     if len(env_bg):
         l_bg = (tonemap(g_bg * env_bg, tone) - tonemap(target_bg, tone)).square().mean()
     else:

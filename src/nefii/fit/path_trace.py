@@ -84,6 +84,20 @@ def two_point_pair(traced: PathTraced, half: int) -> PathTraced:
     return PathTraced(mean_of_pair((first, second), 2), (first, second), traced.secondary)
 
 
+def environment_where(traced: PathTraced, sky: Bool[Tensor, "B"], radiance: Float[Tensor, "B 3"]) -> PathTraced:
+    """``traced`` with its rows ``sky`` replaced by the environment's ``radiance`` along their rays (as diffuse, with
+    no specular part): the parts of a pixel's footprint that see past the object. Those rows' estimates, and their
+    gradients, are dropped; ``radiance``'s other rows are not read. Secondary hits are kept."""
+    at = sky.unsqueeze(-1)
+
+    def swap(e: RadianceEstimate) -> RadianceEstimate:
+        return RadianceEstimate(torch.where(at, radiance.to(e.diffuse), e.diffuse),
+                                torch.where(at, torch.zeros_like(e.specular), e.specular))
+
+    pair = None if traced.pair is None else (swap(traced.pair[0]), swap(traced.pair[1]))
+    return PathTraced(swap(traced.radiance), pair, traced.secondary)
+
+
 def _estimate(samples: DirectionSamples, material: Material, n: Tensor, L_i: Tensor
               ) -> tuple[RadianceEstimate, tuple[RadianceEstimate, RadianceEstimate] | None]:
     N = samples.num_estimator_samples

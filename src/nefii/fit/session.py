@@ -82,10 +82,11 @@ def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg:
     will render them: a view shot a stop brighter is not a brighter sky where it looks (on leaning's phone
     capture the searched sun 17 -> 10 degrees from the truth; docs/experiments.md, 2026-11-29). ``seen_sun``: a
     light source the background sees (:func:`nefii.fit.light_init.sky_sun`), used where the shading shows no
-    peak."""
-    pts, rgb = pixels.points, pixels.rgb
+    peak. Pixels the silhouette crosses are left out: their colour is no one surface's shading."""
+    solid = ~pixels.edge
+    pts, rgb = pixels.points[solid], pixels.rgb[solid]
     if metered is not None and cfg.exposure == "per_view":
-        rgb = without_gains(rgb, pixels.view, metered_log_gains(metered))
+        rgb = without_gains(rgb, pixels.view[solid], metered_log_gains(metered))
     est = estimate_light(pts.position, pts.normal, pts.geometric_normal, rgb, geometry,
                          generator=torch.Generator().manual_seed(cfg.seed), ray_offset=cfg.ray_offset,
                          seen_sun=seen_sun)
@@ -141,10 +142,12 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     seen_background = len(pixels.bg_dirs)
     pixels, backdrop = without_backdrop(pixels)
     clipped = 0 if scene.clipped is None else int(scene.clipped.sum())
-    unit = radiance_unit(pixels.rgb, scene.root)
+    unit = radiance_unit(pixels.rgb[~pixels.edge], scene.root)
     if unit != 1.0:                     # no copy of every colour where the images are taken as they are
         pixels = pixels.scaled(1.0 / unit)
-    say(f"{len(pixels.points)} object pixels, {len(pixels.bg_dirs)} background pixels"
+    edges = int(pixels.edge.sum())
+    say(f"{len(pixels.points)} object pixels" + (f" ({edges} on the silhouette, fitted as object and sky mixed)"
+                                                  if edges else "") + f", {len(pixels.bg_dirs)} background pixels"
         + (f"; {clipped} clipped pixels (some channel at the file's top value) left out" if clipped else ""))
     if backdrop is not None:
         say(f"the {seen_background} background pixels are one colour ({', '.join(f'{c:.3g}' for c in backdrop.tolist())}):"

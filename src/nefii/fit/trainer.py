@@ -32,7 +32,8 @@ from .light_solve import (average_quadratic, background_quadratic, linear_term, 
 from .losses import (Gains, LossTerms, SecondaryHitBuffer, SmoothnessPrior, observed_loss, smoothness, tonemap_slope,
                      unobserved_loss)
 from .model import NeFIIModel, decode_material
-from .path_trace import PathTraced, SurfacePoints, Transport, path_trace, sample_directions, two_point_pair
+from .path_trace import (PathTraced, SurfacePoints, Transport, environment_where, path_trace, sample_directions,
+                         two_point_pair)
 from .pixels import FOOTPRINT_GRID, Pixels
 from .policies import Alternation, LightSolveSchedule, PriorFade, RoughnessWarmup
 from .units import rescale_radiance
@@ -110,6 +111,10 @@ class Trainer:
         self.light_solve = LightSolveSchedule(cfg.light_solve_every if solves else 0, cfg.steps)
         self.sun_lobe = sun_lobe
         self.radiance_unit = radiance_unit
+        self.sees_sky = bool(pixels.footprint_sky.any())
+        """whether some footprint position sees past the object (edge pixels where the background is visible)"""
+        self.solid_pixels = (~pixels.edge).nonzero()[:, 0]
+        """the object pixels the silhouette does not cross: the light solve's"""
         self.step = 0
 
     # ---- one step
@@ -143,13 +148,16 @@ class Trainer:
     def _trace_footprint(self, batch: Pixels, rough: float | None) -> tuple[SurfacePoints, Material, PathTraced]:
         """Each pixel of ``batch`` estimated at two of its footprint positions drawn independently, half the
         samples at each: their mean is an estimate of the pixel's average over its footprint, as the image
-        records it, and the two are the independent pair the ``l2_pair`` loss needs. Returns the first
-        position's points and material (for the cache's term and the priors) and the pair's estimate."""
+        records it, and the two are the independent pair the ``l2_pair`` loss needs. A position past the
+        silhouette sees the environment along its ray (:func:`environment_where`). Returns the first position's
+        points and material (for the cache's term and the priors) and the pair's estimate."""
         B, F = len(batch.points), len(FOOTPRINT_GRID)
-        first = batch.at_footprint(torch.randint(F, (B,), generator=self.generator, device=self.device))
-        second = batch.at_footprint(torch.randint(F, (B,), generator=self.generator, device=self.device))
-        material, traced = self._trace(SurfacePoints.cat([first, second]), rough,
-                                       num_samples=max(self.cfg.num_samples // 2, 1))
+        first, sky1 = batch.at_footprint(torch.randint(F, (B,), generator=self.generator, device=self.device))
+        second, sky2 = batch.at_footprint(torch.randint(F, (B,), generator=self.generator, device=self.device))
+        pts = SurfacePoints.cat([first, second])
+        material, traced = self._trace(pts, rough, num_samples=max(self.cfg.num_samples // 2, 1))
+        if self.sees_sky:
+            traced = environment_where(traced, torch.cat([sky1, sky2]), self.model.env.radiance(-pts.wo))
         return first, Material(material.albedo[:B], material.roughness[:B], material.brdf), two_point_pair(traced, B)
 
     def _consistency_light(self) -> Callable[[Tensor], Tensor] | None:
@@ -167,7 +175,8 @@ class Trainer:
         cfg, px, model, g = self.cfg, self.pixels, self.model, self.generator
         env = model.env
         sg = env()                                    # no gradient: solve_light runs under no_grad
-        idx = torch.randint(len(px.points), (cfg.light_solve_pixels,), generator=g, device=self.device)
+        solid = self.solid_pixels
+        idx = solid[torch.randint(len(solid), (cfg.light_solve_pixels,), generator=g, device=self.device)]
         q, sampler = None, env.light_sampler()
         for part in idx.split(LIGHT_SOLVE_CHUNK):
             pts = px.points[part]
@@ -224,7 +233,8 @@ class Trainer:
                 gains = Gains(self.gains(batch.view), self.gains(batch.bg_view), self.gains.prior())
             terms = observed_loss(traced, model.cache(pts.position, pts.normal, pts.wo), batch.rgb,
                                   model.env.radiance(batch.bg_dirs), batch.bg_rgb, cfg.tonemap, cfg.loss,
-                                  cfg.beta1, cfg.beta2, smooth, light, gains)
+                                  cfg.beta1, cfg.beta2, smooth, light, gains,
+                                  cache_rows=~batch.edge if self.sees_sky else None)
             self.buffer.add(traced.secondary)
             kind = "observed"
         if any_rank(not bool(torch.isfinite(terms.total)), self.dist, self.device):
