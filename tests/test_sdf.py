@@ -21,7 +21,7 @@ from nefii.raycast.base import Rays
 from nefii.sdf.config import geometry_config_from_dict, resolve_geometry_config
 from nefii.sdf.extract import extract_mesh
 from nefii.sdf.from_mesh import inside_by_parity, mesh_signed_distances
-from nefii.sdf.metrics import mesh_distance
+from nefii.sdf.metrics import mesh_distance, seen_by
 from nefii.sdf.networks import SDFNetwork
 from nefii.sdf.normalization import Normalization, look_at_center, normalization_from_cameras
 from nefii.sdf.outputs import load_sdf
@@ -307,6 +307,43 @@ def test_the_covered_normal_error_is_the_tilt_where_the_prediction_lies_and_igno
     far = flat.copy().apply_translation((0.0, 0.0, 3.0))
     d2 = mesh_distance(tilted, trimesh.util.concatenate([flat, far]), samples=40000)
     assert d2.missed > 0.45 and d2.normal_median_covered_deg == pytest.approx(3.0, abs=0.05)
+
+
+def _cameras_above(n: int, elevations: tuple[float, float], distance: float = 6.0) -> Cameras:
+    """``n`` cameras looking at the origin from ``distance``, elevations spread between the two (degrees)."""
+    c2w, K = [], intrinsics_from_fov(math.radians(40.0), 64, 64)
+    for i in range(n):
+        az, el = 2 * math.pi * i / n, math.radians(elevations[0] + (elevations[1] - elevations[0]) * (i % 3) / 2)
+        eye = torch.tensor([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)],
+                           dtype=torch.float64) * distance
+        c2w.append(look_at(eye, torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)))
+    return Cameras(K.expand(n, 3, 3).clone(), torch.stack(c2w), 64, 64)
+
+
+def test_the_seen_share_leaves_out_what_no_camera_sees():
+    """A cube seen from above (elevations 20-60 degrees): its bottom face, a sixth of its area, is seen by no
+    camera, and a box standing on the cube's top hides the part of the top under it. A prediction without the
+    bottom face misses a sixth of the cube (less the band along its edges that lies within the threshold of the
+    sides) and nothing of what the cameras see; one without the top face misses a fifth of what they see."""
+    cube = trimesh.creation.box((1.0, 1.0, 1.0)).subdivide().subdivide()
+    cams = _cameras_above(12, (20.0, 60.0))
+    d = mesh_distance(cube, cube, samples=30000, cameras=cams)
+    assert d.seen == pytest.approx(5 / 6, abs=0.01) and d.missed_seen == 0.0
+    faces = cube.face_normals
+    no_bottom = cube.submesh([np.flatnonzero(faces[:, 2] > -0.5)], append=True)
+    no_top = cube.submesh([np.flatnonzero(faces[:, 2] < 0.5)], append=True)
+    inner = (1 - 2 * 0.02 * math.sqrt(3)) ** 2                 # a face's share farther than 2% of the diagonal
+    d = mesh_distance(no_bottom, cube, samples=30000, cameras=cams)
+    assert d.missed == pytest.approx(inner / 6, abs=0.01) and d.missed_seen < 0.002
+    d = mesh_distance(no_top, cube, samples=30000, cameras=cams)
+    assert d.missed_seen == pytest.approx(inner / 5, abs=0.01)
+    lid = trimesh.creation.box((0.5, 0.5, 0.5)).apply_translation((0.0, 0.0, 0.75))
+    stacked = trimesh.util.concatenate([cube, lid])
+    seen = seen_by(cube.triangles_center, faces, stacked, cams)
+    top = faces[:, 2] > 0.5
+    reach = np.abs(cube.triangles_center[:, :2]).max(1)
+    assert not seen[top & (reach < 0.25)].any() and seen[top & (reach > 0.3)].all()
+    assert not seen[faces[:, 2] < -0.5].any() and seen[np.abs(faces[:, 2]) < 0.5].all()
 
 
 def test_sphere_tracing_agrees_with_embree_on_the_extracted_mesh():

@@ -52,10 +52,15 @@ class Pixels:
         at = k * len(self.points) + torch.arange(len(self.points), device=k.device)
         return self.footprint[at], self.footprint_sky[at]
 
+    @property
+    def solid(self) -> Bool[Tensor, "P"]:
+        """The object pixels the silhouette does not cross (all of them where the background is not visible): one
+        surface's shading, what the light's start, the light solve, the radiance unit and the cache's term read."""
+        return ~self.edge
+
     def without_edges(self) -> "Pixels":
-        """The object pixels the silhouette does not cross (all of them where the background is not visible),
-        and every background pixel."""
-        return self.select((~self.edge).nonzero()[:, 0], torch.arange(len(self.bg_dirs), device=self.edge.device))
+        """The :attr:`solid` object pixels and every background pixel."""
+        return self.select(self.solid.nonzero()[:, 0], torch.arange(len(self.bg_dirs), device=self.edge.device))
 
     def scaled(self, k: float) -> "Pixels":
         """The same pixels with every colour (object and background) times ``k``."""

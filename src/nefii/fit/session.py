@@ -83,7 +83,7 @@ def initialise_light(model: NeFIIModel, pixels: Pixels, geometry: Geometry, cfg:
     capture the searched sun 17 -> 10 degrees from the truth; docs/experiments.md, 2026-11-29). ``seen_sun``: a
     light source the background sees (:func:`nefii.fit.light_init.sky_sun`), used where the shading shows no
     peak. Pixels the silhouette crosses are left out: their colour is no one surface's shading."""
-    solid = ~pixels.edge
+    solid = pixels.solid
     pts, rgb = pixels.points[solid], pixels.rgb[solid]
     if metered is not None and cfg.exposure == "per_view":
         rgb = without_gains(rgb, pixels.view[solid], metered_log_gains(metered))
@@ -142,7 +142,7 @@ def prepare_fit(cfg: FitConfig, data: Path, *, mesh: Path | None = None, geometr
     seen_background = len(pixels.bg_dirs)
     pixels, backdrop = without_backdrop(pixels)
     clipped = 0 if scene.clipped is None else int(scene.clipped.sum())
-    unit = radiance_unit(pixels.rgb[~pixels.edge], scene.root)
+    unit = radiance_unit(pixels.rgb[pixels.solid], scene.root)
     if unit != 1.0:                     # no copy of every colour where the images are taken as they are
         pixels = pixels.scaled(1.0 / unit)
     edges = int(pixels.edge.sum())

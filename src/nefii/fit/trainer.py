@@ -113,7 +113,9 @@ class Trainer:
         self.radiance_unit = radiance_unit
         self.sees_sky = bool(pixels.footprint_sky.any())
         """whether some footprint position sees past the object (edge pixels where the background is visible)"""
-        self.solid_pixels = (~pixels.edge).nonzero()[:, 0]
+        self.has_edges = bool(pixels.edge.any())
+        """whether some object pixel mixes object and environment (the cache's term then reads the others only)"""
+        self.solid_pixels = pixels.solid.nonzero()[:, 0]
         """the object pixels the silhouette does not cross: the light solve's"""
         self.step = 0
 
@@ -234,7 +236,7 @@ class Trainer:
             terms = observed_loss(traced, model.cache(pts.position, pts.normal, pts.wo), batch.rgb,
                                   model.env.radiance(batch.bg_dirs), batch.bg_rgb, cfg.tonemap, cfg.loss,
                                   cfg.beta1, cfg.beta2, smooth, light, gains,
-                                  cache_rows=~batch.edge if self.sees_sky else None)
+                                  cache_rows=batch.solid if self.has_edges else None)
             self.buffer.add(traced.secondary)
             kind = "observed"
         if any_rank(not bool(torch.isfinite(terms.total)), self.dist, self.device):
