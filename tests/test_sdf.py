@@ -316,7 +316,8 @@ def _cameras_above(n: int, elevations: tuple[float, float], distance: float = 6.
         az, el = 2 * math.pi * i / n, math.radians(elevations[0] + (elevations[1] - elevations[0]) * (i % 3) / 2)
         eye = torch.tensor([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)],
                            dtype=torch.float64) * distance
-        c2w.append(look_at(eye, torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)))
+        up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        c2w.append(look_at(eye, torch.zeros(3, dtype=torch.float64), up))
     return Cameras(K.expand(n, 3, 3).clone(), torch.stack(c2w), 64, 64)
 
 
