@@ -6,8 +6,9 @@ fit's albedo / roughness with reconstructed against ground-truth geometry.
                                   [--set key=value ...]
 
 For each scene (and each masks setting) runs ``nefii geometry`` (``--preset``, default ``cpu``) and measures the
-chamfer distance (relative to the scene's bounding-box diagonal) and normal angle error against
-``mesh.ply``, wall time and peak memory. With ``--fits``, also ``nefii fit`` + ``nefii eval`` on
+chamfer distance (relative to the scene's bounding-box diagonal), the share of the true surface missed (of all of
+it, and of the part some training view sees: the underside of a floor slab or a saucer is in no image) and normal
+angle error against ``mesh.ply``, wall time and peak memory. With ``--fits``, also ``nefii fit`` + ``nefii eval`` on
 the reconstructed geometry (mesh mode) beside the ground-truth-geometry fit that
 ``benchmarks.quality`` caches. With ``--refine``, each fit on a reconstruction is copied and refined by
 ``nefii refine`` (default settings), its refined mesh measured as the reconstruction is and the copy evaluated.
