@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -252,9 +253,12 @@ def main() -> None:
 
 def _missed(r: dict) -> str:
     """The missed shares of a row (an older cached row has no seen share)."""
-    seen = r.get("missed_seen", float("nan"))
-    text = f"{100 * r['missed']:.1f}%" + ("" if seen != seen else f" / {100 * seen:.1f}%")
-    return text + (f" ({100 * r['seen']:.1f}%)" if "seen" in r and r["seen"] == r["seen"] else "")
+    text = f"{100 * r['missed']:.1f}%"
+    if not math.isnan(r.get("missed_seen", math.nan)):
+        text += f" / {100 * r['missed_seen']:.1f}%"
+    if not math.isnan(r.get("seen", math.nan)):
+        text += f" ({100 * r['seen']:.1f}%)"
+    return text
 
 
 if __name__ == "__main__":

@@ -51,11 +51,11 @@ def seen_by(points: np.ndarray, normals: np.ndarray, mesh: trimesh.Trimesh, came
         to_point = points[todo] - eye
         dist = np.linalg.norm(to_point, axis=1)
         d = to_point / dist[:, None]
-        grazing = np.abs((d * normals[todo]).sum(1)) > 1e-3
+        facing = np.abs((d * normals[todo]).sum(1)) > 1e-3              # not edge-on
         hit = geometry.intersect(Rays(torch.from_numpy(np.broadcast_to(eye, d.shape).copy()), torch.from_numpy(d)))
         t = hit.t.numpy()
         reached = hit.valid.numpy() & (t >= dist - offset * diag)
-        seen[np.flatnonzero(todo)[reached & grazing]] = True
+        seen[np.flatnonzero(todo)[reached & facing]] = True
     return seen
 
 
