@@ -8,7 +8,8 @@ import trimesh
 
 from nefii.fields.environment import EnvmapEnvironment, SGEnvironment
 from nefii.fit.light_prior import LightCoverage, direction_coverage, light_coverage, unseen_light_prior
-from nefii.fit.path_trace import SurfacePoints
+from nefii.fit.losses import observed_loss
+from nefii.fit.path_trace import PathTraced, RadianceEstimate, SurfacePoints
 from nefii.raycast import MeshGeometry
 from nefii.raycast.base import visible_cosines
 from nefii.render.sg import fibonacci_sphere
@@ -56,6 +57,45 @@ def test_unseen_weight_is_zero_at_the_best_seen_direction_and_one_where_nothing_
     # between: (1 - cos)^2 of the elevation
     side = torch.tensor([[math.cos(math.radians(30)), 0.0, math.sin(math.radians(30))]])
     assert abs(cov.at(side).item() - (1 - 0.5) ** 2) < 0.06
+
+
+def test_seen_share_of_an_open_floor_is_the_cosine_of_the_elevation_and_zero_below_it():
+    """``seen = c / max c``: what weighs a background pixel in Eq. 7's third term."""
+    floor = MeshGeometry(*_quad(0.0, 1.0))
+    cov = light_coverage(_floor_points(300), floor, ray_offset=1e-4, seed=0)
+    elevations = torch.tensor([75.0, 45.0, 20.0, -20.0, -80.0])
+    w = torch.stack([torch.cos(torch.deg2rad(elevations)), torch.zeros(5), torch.sin(torch.deg2rad(elevations))], -1)
+    seen = cov.seen(w)
+    expected = torch.sin(torch.deg2rad(elevations)).clamp_min(0.0)
+    assert torch.allclose(seen, expected, atol=0.06)                      # the lattice is ~6 degrees apart
+    assert seen[3:].abs().max() == 0.0
+    assert torch.allclose(seen, 1.0 - cov.at(w).sqrt())                  # u = (1 - seen)^2
+
+
+def test_the_sky_term_weighs_each_background_pixel():
+    """Eq. 7's third term with per-pixel weights: zero weight drops a pixel, unit weights leave the term as it was."""
+    env_bg = torch.tensor([[1.0, 1.0, 1.0], [3.0, 0.5, 2.0]])
+    target_bg = torch.tensor([[2.0, 1.0, 1.0], [1.0, 0.5, 2.0]])
+    traced = _traced_constant(4)
+    rgb, cache = torch.full((4, 3), 0.5), torch.full((4, 3), 0.5)
+    plain = observed_loss(traced, cache, rgb, env_bg, target_bg, "log1p", "l2_pair").background
+    ones = observed_loss(traced, cache, rgb, env_bg, target_bg, "log1p", "l2_pair",
+                         bg_weight=torch.ones(2)).background
+    first = observed_loss(traced, cache, rgb, env_bg, target_bg, "log1p", "l2_pair",
+                          bg_weight=torch.tensor([1.0, 0.0])).background
+    err0 = (math.log1p(1.0) - math.log1p(2.0)) ** 2 / 3
+    err1 = ((math.log1p(3.0) - math.log1p(1.0)) ** 2) / 3
+    assert math.isclose(plain.item(), (err0 + err1) / 2, rel_tol=1e-5)
+    assert math.isclose(ones.item(), plain.item(), rel_tol=1e-6)
+    assert math.isclose(first.item(), err0 / 2, rel_tol=1e-5)
+
+
+def _traced_constant(n: int) -> PathTraced:
+    """A path-traced estimate of ``n`` pixels at 0.5 with its independent pair (what ``l2_pair`` reads)."""
+    half = RadianceEstimate(torch.full((n, 3), 0.25), torch.full((n, 3), 0.0))
+    none = torch.zeros(0, 3)
+    return PathTraced(RadianceEstimate(torch.full((n, 3), 0.5), torch.zeros(n, 3)), (half, half),
+                      SurfacePoints(none, none, none, none, none))
 
 
 def test_prior_pulls_unseen_energy_only_and_ignores_the_light_s_scale():

@@ -45,6 +45,11 @@ class LightCoverage:
         """``u`` at the lattice direction nearest to each unit direction ``w``."""
         return self.unseen[(w @ self.directions.T).argmax(-1)]
 
+    def seen(self, w: Float[Tensor, "K 3"]) -> Float[Tensor, " K"]:
+        """``c / max c`` at the lattice direction nearest to each unit direction ``w``: 1 for the best-seen
+        direction, 0 for one no point sees."""
+        return 1.0 - self.at(w).pow(1.0 / UNSEEN_POWER)
+
 
 def direction_coverage(points: SurfacePoints, geometry: Geometry, directions: Float[Tensor, "M 3"],
                        ray_offset: float, chunk: int = 64) -> Float[Tensor, " M"]:

@@ -126,13 +126,15 @@ def observed_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], target: F
                   env_bg: Float[Tensor, "G 3"], target_bg: Float[Tensor, "G 3"], tone: str, kind: str,
                   beta1: float = 1.0, beta2: float = 1.0, smooth: Tensor | None = None,
                   light: Tensor | None = None, gains: Gains | None = None,
-                  cache_rows: Bool[Tensor, "B"] | None = None) -> LossTerms:
+                  cache_rows: Bool[Tensor, "B"] | None = None,
+                  bg_weight: Float[Tensor, "G"] | None = None) -> LossTerms:
     """Eq. 7: ``d(g c_pt, c) + beta1 d(g L(x,n,wo), c) + beta2 |g E(d_bg) - c_bg|_2^2`` (+ the priors' values),
     ``g`` each pixel's view gain (1 without ``gains``).
 
     ``cache_rgb`` is the cache's own colour at the pixels' points, ``env_bg`` the environment along the
     background pixels' directions (``G`` may be 0). ``cache_rows``: the pixels the cache's term reads (None: all);
-    a pixel whose colour mixes object and sky is no radiance of one surface point."""
+    a pixel whose colour mixes object and sky is no radiance of one surface point. ``bg_weight``: each background
+    pixel's weight in the third term (None: 1)."""
     g, g_bg = (1.0, 1.0) if gains is None else (gains.pixels, gains.background)
     l_render = render_distance(traced, target, tone, kind, None if gains is None else gains.pixels)
     if cache_rows is not None:
@@ -141,7 +143,8 @@ def observed_loss(traced: PathTraced, cache_rgb: Float[Tensor, "B 3"], target: F
     l_cache = (distance(tonemap(g * cache_rgb, tone), tonemap(target, tone), kind) if len(cache_rgb)
                else l_render.new_zeros(()))
     if len(env_bg):
-        l_bg = (tonemap(g_bg * env_bg, tone) - tonemap(target_bg, tone)).square().mean()
+        err = (tonemap(g_bg * env_bg, tone) - tonemap(target_bg, tone)).square()
+        l_bg = err.mean() if bg_weight is None else (err.mean(-1) * bg_weight).mean()
     else:
         l_bg = l_render.new_zeros(())
     total = l_render + beta1 * l_cache + beta2 * l_bg

@@ -105,8 +105,11 @@ class Trainer:
         self.transport = transport_of(cfg)
         self.prior = SmoothnessPrior(cfg.smooth_albedo, cfg.smooth_radius * geometry.scale)
         self.prior_fade = PriorFade(self.warmup.steps, cfg.steps, cfg.smooth_albedo_end)
+        self.sky_term = len(pixels.bg_dirs) > 0 and cfg.beta2 > 0 and cfg.background_pixels > 0
+        """whether Eq. 7's third term (and the light solve's background rows) are formed"""
         self.coverage = (light_coverage(pixels.points, geometry, cfg.ray_offset * geometry.scale, cfg.seed)
-                         if cfg.light_prior > 0 else None)
+                         if cfg.light_prior > 0 or self.sky_term else None)
+        """how much the training points see each direction: the light prior's and the sky term's weights"""
         solves = cfg.light.kind == "sg" and cfg.loss == "l2_pair"     # what light_solve's quadratic is
         self.light_solve = LightSolveSchedule(cfg.light_solve_every if solves else 0, cfg.steps)
         self.sun_lobe = sun_lobe
@@ -136,6 +139,13 @@ class Trainer:
             return torch.ones(len(dirs), dtype=torch.bool, device=dirs.device)
         sg = env()
         return beyond_glow(dirs, sg.axis[self.sun_lobe], float(sg.sharpness[self.sun_lobe]))
+
+    def _sky_weight(self, dirs: Float[Tensor, "Q 3"]) -> Float[Tensor, " Q"] | None:
+        """Each background pixel's weight in Eq. 7's third term and the light solve: how much the object sees its
+        direction (:meth:`LightCoverage.seen`). The camera's view of the sky pins the light the object is lit by;
+        most of a capture's background is ground the object, standing on it, hardly sees, and fitting that spent
+        the lobes the object's shading needs (docs/experiments.md, 2026-12-04). None: no coverage, weight 1."""
+        return None if self.coverage is None else self.coverage.seen(dirs)
 
     def _trace(self, pts: SurfacePoints, rough: float | None, learn: str = "all",
                environment: Callable[[Tensor], Tensor] | None = None, num_samples: int | None = None):
@@ -189,14 +199,17 @@ class Trainer:
             term = pixel_quadratic(design, px.rgb[part], tonemap_slope(px.rgb[part], cfg.tonemap), gain)
             q = term.scaled(len(part) / len(idx)) if q is None else q + term.scaled(len(part) / len(idx))
         j = None
-        if len(px.bg_dirs) and cfg.beta2 > 0 and cfg.background_pixels > 0:
+        if self.sky_term:
             j = torch.randint(len(px.bg_dirs), (cfg.light_solve_pixels,), generator=g, device=self.device)
             j = j[self._sky_usable(px.bg_dirs[j])]
         if j is not None and len(j):            # none left: every pixel drawn lies in the sun lobe's glow
             gain = None if self.gains is None else self.gains(px.bg_view[j])
-            q = q + background_quadratic(sg, px.bg_dirs[j], px.bg_rgb[j], tonemap_slope(px.bg_rgb[j], cfg.tonemap),
-                                         gain).scaled(cfg.beta2)
-        if self.coverage is not None:
+            weight = tonemap_slope(px.bg_rgb[j], cfg.tonemap)
+            seen = self._sky_weight(px.bg_dirs[j])
+            if seen is not None:                # the solve squares the weight
+                weight = weight * seen.sqrt()[:, None]
+            q = q + background_quadratic(sg, px.bg_dirs[j], px.bg_rgb[j], weight, gain).scaled(cfg.beta2)
+        if self.coverage is not None and cfg.light_prior > 0:
             integral = sg_integral(sg.sharpness)
             energy = float((sg.amplitude.mean(-1) * integral).sum())
             q = q + linear_term(cfg.light_prior * self.coverage.at(sg.axis) * integral / max(energy, 1e-12))
@@ -228,7 +241,7 @@ class Trainer:
                 smooth = smoothness(material.albedo, decode_material(model, near, pts.lookup_normal, rough).albedo,
                                     self.prior.weight * self.prior_fade.factor(step))
             light = None
-            if self.coverage is not None:
+            if self.coverage is not None and cfg.light_prior > 0:
                 light = unseen_light_prior(*model.env.energy_atoms(), self.coverage, cfg.light_prior)
             gains = None
             if self.gains is not None:
@@ -236,7 +249,8 @@ class Trainer:
             terms = observed_loss(traced, model.cache(pts.position, pts.normal, pts.wo), batch.rgb,
                                   model.env.radiance(batch.bg_dirs), batch.bg_rgb, cfg.tonemap, cfg.loss,
                                   cfg.beta1, cfg.beta2, smooth, light, gains,
-                                  cache_rows=batch.solid if self.has_edges else None)
+                                  cache_rows=batch.solid if self.has_edges else None,
+                                  bg_weight=self._sky_weight(batch.bg_dirs) if len(batch.bg_dirs) else None)
             self.buffer.add(traced.secondary)
             kind = "observed"
         if any_rank(not bool(torch.isfinite(terms.total)), self.dist, self.device):
