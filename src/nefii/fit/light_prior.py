@@ -13,6 +13,9 @@ with ``E_k`` the energy of lobe (or env-map pixel) ``k`` in direction ``d_k`` an
 ``c(d)`` the training points' mean ``V(x, d) max(n . d, 0)`` (the diffuse irradiance a unit light from ``d``
 would give them). The best-seen directions are not pulled at all, so the prior does not trade the light the
 images pin against the albedo; ``E / sg(E)`` makes it independent of the light's overall scale.
+
+The same coverage weighs the background pixels of Eq. 7's third term and of the light solve
+(:meth:`LightCoverage.seen`, ``c / max c``): the sky the camera sees pins the light where the object sees it.
 """
 from __future__ import annotations
 
