@@ -250,7 +250,7 @@ class Trainer:
                                   model.env.radiance(batch.bg_dirs), batch.bg_rgb, cfg.tonemap, cfg.loss,
                                   cfg.beta1, cfg.beta2, smooth, light, gains,
                                   cache_rows=batch.solid if self.has_edges else None,
-                                  bg_weight=self._sky_weight(batch.bg_dirs) if len(batch.bg_dirs) else None)
+                                  bg_weight=self._sky_weight(batch.bg_dirs))
             self.buffer.add(traced.secondary)
             kind = "observed"
         if any_rank(not bool(torch.isfinite(terms.total)), self.dist, self.device):
