@@ -32,7 +32,7 @@ import trimesh
 
 from nefii.camera import jittered_pixel_rays
 from nefii.data import load_scene
-from nefii.data.material import MaterialOnMesh, load_material
+from nefii.data.material import load_material
 from nefii.evaluate.partial import view_seed
 from nefii.evaluate.render_views import MAX_SUBPIXELS, render_view, subpixel_grid, subpixel_samples
 from nefii.evaluate.run import eval_mask, ground_truth
@@ -128,12 +128,12 @@ def albedo_on(run: Path, mesh: Path) -> float:
     """Masked albedo PSNR (Table 1 scoring) of ``run``'s fitted material read at ``mesh``'s first hits in the test
     views by eval's own material pass (``nefii eval --material-only``: each pixel the mean over 4 x 4 sub-pixel
     rays, the view's generator seeded as eval seeds it), so on the run's own mesh it is that eval's score to the
-    bit. (Read at pixel centres instead, the true-mesh fits' own materials scored 3-6 dB below their evals on the
+    bit. (Read at pixel centres instead, the true-mesh fits' own materials scored 2.5-6 dB below their evals on the
     true meshes: the protocol's loss, not the geometry's.) With the ground-truth-geometry fit and a reconstructed
     mesh: how well that fit's field transfers to another surface. Not a bound on a fit on the reconstruction (a
     field reads its texture through the surface it was fitted on: the bowl's maskless photo reconstruction scored
-    the true-mesh fit's material at 26.96 dB, and the capture's own fit on it at 29.73); :func:`truth_on` is the geometry's
-    share."""
+    the true-mesh fit's material at 26.96 dB, and the capture's own fit on it at 29.73); :func:`truth_on` is the
+    geometry's share."""
     fitted = load_run(run)
     views = load_scene(fitted.data, "test")
     geometry = MeshGeometry.from_file(mesh)
@@ -170,7 +170,7 @@ def truth_on(data: Path, mesh: Path, seed: int = 0) -> TruthOnRecon:
     show: optimistic on a lid), and their share is returned beside the score."""
     views = load_scene(data, "test")
     true_mesh = MeshGeometry.from_file(views.mesh_path)
-    truth = MaterialOnMesh(load_material(data), true_mesh)
+    material = load_material(data)
     geometry = MeshGeometry.from_file(mesh)
     reach = PROJECTION * true_mesh.scale
     generator = torch.Generator().manual_seed(seed)
@@ -191,7 +191,7 @@ def truth_on(data: Path, mesh: Path, seed: int = 0) -> TruthOnRecon:
         triangle = torch.where(carried, onto.triangle_id, own.triangle_id)
         keep = carried | own.valid
         unprojected, rays = unprojected + int((~carried).sum()), rays + len(idx)
-        albedo = truth.material.at_hits(true_mesh, triangle[keep], position[keep]).albedo
+        albedo = material.at_hits(true_mesh, triangle[keep], position[keep]).albedo
         p = pixel[idx][keep]
         count = torch.zeros(H * W).index_add_(0, pixel[idx], torch.ones(len(idx)))
         total = torch.zeros(H * W, 3).index_add_(0, p, albedo)

@@ -1,6 +1,7 @@
-"""benchmarks.geometry's 'GT material on recon' reads a run's material as eval does: on the run's own mesh it
-scores what ``nefii eval --material-only`` scores (its own material pass: the same 4 x 4 sub-pixel mean), so on a reconstructed mesh the
-difference to the fit's own eval is the geometry's, not the protocol's."""
+"""benchmarks.geometry's material reads. 'GT material on recon' reads a run's material as eval does: on the run's
+own mesh it scores what ``nefii eval --material-only`` scores (eval's own material pass, the same 4 x 4 sub-pixel
+mean), so the protocol adds nothing to the transfer. 'True material on recon' (``truth_on``) scores a mesh's
+misplacement with a perfect material."""
 from __future__ import annotations
 
 import json
