@@ -327,11 +327,13 @@ def test_secondary_buffer_is_a_ring():
 def test_data_parallel_over_two_cpu_processes(tiny_scene, tmp_path):
     run = tmp_path / "ddp"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
-                           "29517", "-m", "nefii.cli.main", "fit", str(tiny_scene), "--out", str(run), "--preset",
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                           "-m", "nefii.cli.main", "fit", str(tiny_scene), "--out", str(run), "--preset",
                            "tiny", "--quiet", "--device", "cpu", "--set", "threads=1"], env=env, capture_output=True,
                           text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    # the ranks' own output comes first, torchrun's summary of the failure (tracebacks of its own) last
+    assert proc.returncode == 0, f"stdout:\n{proc.stdout[-1500:]}\nstderr:\n{proc.stderr[:3000]}\n...\n" \
+                                 f"{proc.stderr[-800:]}"
     assert "2 processes" in proc.stdout
     assert "the 2 process replicas are in sync" in proc.stdout
     assert (run / "model.pt").is_file() and (run / "sg.npy").is_file()

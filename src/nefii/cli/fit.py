@@ -64,13 +64,17 @@ def run(args: argparse.Namespace) -> int:
     cfg = fit_config(args)
     device = pick_device(args.device)
     ctx = init_distributed(device)
+    clean = False
     try:
         if not ctx.is_main:                 # rank 0 alone holds the folder and writes it
-            return _fit(args, cfg, ctx, None)
-        with writing_run(args.out, "fit", args.resume, warn=_warn) as manifest:
-            return _fit(args, cfg, ctx, manifest)
+            rc = _fit(args, cfg, ctx, None)
+        else:
+            with writing_run(args.out, "fit", args.resume, warn=_warn) as manifest:
+                rc = _fit(args, cfg, ctx, manifest)
+        clean = True
+        return rc
     finally:
-        shutdown(ctx)
+        shutdown(ctx, clean)
 
 
 def _warn(line: str) -> None:

@@ -92,6 +92,11 @@ def parameter_checksums(model: torch.nn.Module, ctx: DistContext, device: torch.
     return [float(t) for t in out]
 
 
-def shutdown(ctx: DistContext) -> None:
+def shutdown(ctx: DistContext, clean: bool) -> None:
+    """Leave the process group. After a ``clean`` run every process first waits for the others (a barrier), so
+    none tears down its connections and exits while another still holds them (rank 0 writes the outputs after
+    the other ranks are done); after a failure it leaves at once, and ``torchrun`` stops the others."""
     if ctx.active and dist.is_initialized():
+        if clean:
+            dist.barrier()
         dist.destroy_process_group()
